@@ -1,0 +1,126 @@
+"""The add-on is a real Blender extension: it builds, validates, installs, enables and disables.
+
+Installed from the built zip into a temporary extension repository with
+Blender's own "Install from Disk" operator, it is enabled as Blender enables
+extensions (module `bl_ext.<repo>.blender_nerf_deform`), which exercises the
+relative imports and `__package__`. Importing the package directly is a
+different path, so it is tested too.
+"""
+
+import subprocess
+import sys
+import zipfile
+
+import pytest
+
+from tools.build_extension import find_blender_ext, stage
+
+from conftest import REPO
+
+REPO_MODULE = "nerf_deform_test"
+EXT_MODULE = f"bl_ext.{REPO_MODULE}.blender_nerf_deform"
+REGISTERED_TYPES = ("NERFDEFORM_PT_main",)
+
+
+def _engine_ids(bpy):
+    """Render engines the scene accepts (the enum is dynamic, so probe by assignment)."""
+    scene = bpy.context.scene or bpy.data.scenes.new("probe")
+    try:
+        scene.render.engine = "NERF_DEFORM"
+        return True
+    except TypeError:
+        return False
+
+
+def _nothing_registered(bpy):
+    return (
+        not any(hasattr(bpy.types, name) for name in REGISTERED_TYPES)
+        and not _engine_ids(bpy)
+        and not any(key.endswith("blender_nerf_deform") for key in bpy.context.preferences.addons.keys())
+    )
+
+
+def _validate(path):
+    return subprocess.run([sys.executable, str(find_blender_ext()), "validate", str(path)], capture_output=True, text=True)
+
+
+def test_repository_manifest_validates(tmp_path):
+    proc = _validate(stage(tmp_path / "blender_nerf_deform"))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_validator_rejects_a_broken_manifest(tmp_path):
+    manifest = tmp_path / "blender_manifest.toml"
+    text = (REPO / "blender_manifest.toml").read_text()
+    manifest.write_text(text.replace('type = "add-on"', 'type = "plugin"'))
+    proc = _validate(stage(tmp_path / "blender_nerf_deform", manifest))
+    assert proc.returncode != 0
+    assert "type" in proc.stdout + proc.stderr
+
+
+def test_zip_has_the_extension_layout(extension_zip):
+    names = set(zipfile.ZipFile(extension_zip).namelist())
+    assert {"blender_manifest.toml", "__init__.py", "addon/__init__.py", "engine/__init__.py"} <= names
+    assert not any("__pycache__" in name or name.endswith(".pyc") for name in names)
+
+
+@pytest.fixture
+def installed(blender, extension_zip, tmp_path):
+    bpy = blender
+    bpy.context.preferences.extensions.repos.new(
+        name="NeRF Deform Test", module=REPO_MODULE, custom_directory=str(tmp_path / "repo"), source="USER"
+    )
+    assert _nothing_registered(bpy)
+    result = bpy.ops.extensions.package_install_files(filepath=str(extension_zip), repo=REPO_MODULE, enable_on_install=True)
+    assert result == {"FINISHED"}
+    return bpy, tmp_path / "repo"
+
+
+def test_installed_extension_enables_as_bl_ext_module(installed):
+    bpy, repo_dir = installed
+    assert (repo_dir / "blender_nerf_deform" / "blender_manifest.toml").is_file()
+    assert EXT_MODULE in bpy.context.preferences.addons.keys()
+    package = sys.modules[EXT_MODULE]
+    assert package.__package__ == EXT_MODULE
+    assert sys.modules[f"{EXT_MODULE}.addon.render_engine"].__package__ == f"{EXT_MODULE}.addon"
+    for name in REGISTERED_TYPES:
+        assert hasattr(bpy.types, name), name
+    assert _engine_ids(bpy)
+    prefs = bpy.context.preferences.addons[EXT_MODULE].preferences
+    assert type(prefs).__name__ == "NERFDEFORM_AddonPreferences"
+    assert prefs.worker_python == ""
+
+
+def test_render_engine_renders_a_frame(installed, tmp_path):
+    bpy, _ = installed
+    scene = bpy.context.scene
+    scene.render.engine = "NERF_DEFORM"
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 48, 50
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.render.filepath = str(tmp_path / "frame.png")
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    image = bpy.data.images.load(str(tmp_path / "frame.png"))
+    assert tuple(image.size) == (32, 24)
+
+
+def test_disabling_leaves_nothing_registered(installed):
+    bpy, _ = installed
+    bpy.ops.preferences.addon_disable(module=EXT_MODULE)
+    assert _nothing_registered(bpy)
+
+
+def test_direct_import_registers_and_unregisters(blender):
+    bpy = blender
+    import blender_nerf_deform
+
+    assert blender_nerf_deform.__package__ == "blender_nerf_deform"
+    blender_nerf_deform.register()
+    try:
+        for name in REGISTERED_TYPES:
+            assert hasattr(bpy.types, name), name
+        assert _engine_ids(bpy)
+    finally:
+        blender_nerf_deform.unregister()
+    assert _nothing_registered(bpy)

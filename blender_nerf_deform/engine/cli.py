@@ -1,0 +1,93 @@
+"""`python -m blender_nerf_deform.engine <command>`: the engine's command line.
+
+A public interface (DESIGN.md): scripts, render farms and the project's own
+benchmarks call it, so the commands and options below stay stable. Each
+command imports its stage lazily so that `--help` never loads torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .errors import EngineError, NotImplementedYet
+
+PROG = "python -m blender_nerf_deform.engine"
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    raise NotImplementedYet("train", issue=3)
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    raise NotImplementedYet("eval", issue=3)
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    raise NotImplementedYet("render", issue=3)
+
+
+def _cmd_extract(args: argparse.Namespace) -> int:
+    raise NotImplementedYet("extract", issue=4)
+
+
+def _cmd_cage(args: argparse.Namespace) -> int:
+    raise NotImplementedYet("cage", issue=4)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Train a NeRF, extract its mesh, build a tetrahedral cage, and render "
+        "it undeformed or ray-bent by a deformed cage. No Blender needed.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("train", help="train a NeRF on a transforms.json dataset")
+    p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder; the checkpoint is RUN_DIR/nerf.ckpt")
+    p.add_argument("--max-seconds", type=float, metavar="S", help="stop training after S seconds")
+    p.add_argument("--steps", type=int, metavar="N", help="stop training after N steps")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.set_defaults(handler=_cmd_train)
+
+    p = sub.add_parser("eval", help="print PSNR of a checkpoint over a dataset's frames")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p.set_defaults(handler=_cmd_eval)
+
+    p = sub.add_parser("render", help="render frames of a NeRF, optionally ray-bent by a deformed cage")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--cameras", required=True, metavar="TRANSFORMS_JSON", help="cameras to render, in transforms.json form")
+    p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<name>.png (RGBA, straight alpha) per frame")
+    p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
+    p.add_argument("--deformed", metavar="V.npy", help="(N,3) deformed positions of the cage's vertices")
+    p.set_defaults(handler=_cmd_render)
+
+    p = sub.add_parser("extract", help="extract a filtered surface mesh from a NeRF's density")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--out", required=True, metavar="MESH.ply", help="output mesh with vertex colours")
+    p.add_argument("--threshold", type=float, metavar="T", help="density threshold of the surface")
+    p.add_argument("--resolution", type=int, metavar="R", help="grid resolution per axis (default 256)")
+    p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V")
+    p.set_defaults(handler=_cmd_extract)
+
+    p = sub.add_parser("cage", help="build the tetrahedral cage around an extracted mesh, once")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--mesh", required=True, metavar="MESH.ply", help="mesh written by `extract`")
+    p.add_argument("--out", required=True, metavar="CAGE.npz", help="cage: `vertices` (N,3) and `tets` (M,4)")
+    p.set_defaults(handler=_cmd_cage)
+
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args) or 0
+    except EngineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

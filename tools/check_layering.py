@@ -1,0 +1,111 @@
+#!/usr/bin/env python3
+"""Check the layering rule of DESIGN.md by reading imports from the source.
+
+- `engine/` never imports Blender's modules (bpy and friends).
+- `addon/` never imports torch, neither directly nor through an engine module
+  it imports (the add-on may use engine modules that are pure numpy).
+
+Every `import` statement counts, including those inside functions, so a lazy
+import cannot slip past. Exits 1 and lists the violations when any is found.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+BLENDER_MODULES = {"bpy", "bpy_extras", "bmesh", "mathutils", "gpu", "gpu_extras", "bgl", "blf", "aud", "addon_utils", "bl_math", "idprop", "imbuf", "freestyle"}
+TORCH_MODULES = {"torch", "torchvision", "torchaudio", "functorch", "tinycudann"}
+
+
+def _module_name(package_root: Path, path: Path) -> str:
+    parts = list(path.relative_to(package_root.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path, module: str) -> list[tuple[int, str]]:
+    """(line, absolute module name) for every import in the file, relative ones resolved."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    is_package = path.name == "__init__.py"
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.extend((node.lineno, alias.name) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                base = node.module or ""
+            else:
+                anchor = module.split(".") if is_package else module.split(".")[:-1]
+                anchor = anchor[: len(anchor) - (node.level - 1)]
+                base = ".".join(anchor + ([node.module] if node.module else []))
+            found.append((node.lineno, base))
+            # `from . import x` may import submodule x (only project modules can be reached that way).
+            if node.level:
+                found.extend((node.lineno, f"{base}.{alias.name}") for alias in node.names)
+    return found
+
+
+def import_graph(package_root: Path) -> dict[str, tuple[Path, list[tuple[int, str]]]]:
+    graph = {}
+    for path in sorted(package_root.rglob("*.py")):
+        module = _module_name(package_root, path)
+        graph[module] = (path, _imports(path, module))
+    return graph
+
+
+def _top(name: str) -> str:
+    return name.split(".")[0]
+
+
+def violations(package_root: Path) -> list[str]:
+    pkg = package_root.name
+    graph = import_graph(package_root)
+    problems = []
+
+    for module, (path, imports) in graph.items():
+        if module.startswith(f"{pkg}.engine"):
+            for line, name in imports:
+                if _top(name) in BLENDER_MODULES:
+                    problems.append(f"{path}:{line}: engine imports {name} (engine/ must not import Blender modules)")
+
+    # Torch reachable from addon/ through any chain of project modules.
+    def reaches_torch(module: str, seen: set[str]) -> list[str] | None:
+        if module in seen or module not in graph:
+            return None
+        seen.add(module)
+        for _line, name in graph[module][1]:
+            if _top(name) in TORCH_MODULES:
+                return [module, name]
+            if name.startswith(pkg + ".") and not name.startswith(f"{pkg}.addon"):
+                chain = reaches_torch(name, seen)
+                if chain:
+                    return [module] + chain
+        return None
+
+    for module, (path, imports) in graph.items():
+        if not module.startswith(f"{pkg}.addon"):
+            continue
+        for line, name in imports:
+            if _top(name) in TORCH_MODULES:
+                problems.append(f"{path}:{line}: addon imports {name} (addon/ must not import torch)")
+            elif name.startswith(f"{pkg}.engine"):
+                chain = reaches_torch(name, set())
+                if chain:
+                    problems.append(f"{path}:{line}: addon imports {name}, which reaches torch: {' -> '.join(chain)}")
+    return problems
+
+
+def main() -> int:
+    root = Path(__file__).resolve().parent.parent / "blender_nerf_deform"
+    problems = violations(root)
+    for problem in problems:
+        print(problem)
+    print("layering: ok" if not problems else f"layering: {len(problems)} violation(s)")
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
