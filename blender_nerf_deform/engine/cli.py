@@ -8,6 +8,8 @@ command imports its stage lazily so that `--help` never loads torch.
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import sys
 
 from .errors import EngineError, NotImplementedYet
@@ -15,24 +17,16 @@ from .errors import EngineError, NotImplementedYet
 PROG = "python -m blender_nerf_deform.engine"
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("train", issue=3)
+def _stage(module: str, issue: int):
+    """Handler that runs `<module>.main(args)` of the engine, imported only when the command runs."""
 
+    def handler(args: argparse.Namespace) -> int:
+        name = f"{__package__}.{module}"
+        if importlib.util.find_spec(name) is None:
+            raise NotImplementedYet(args.command, issue)
+        return importlib.import_module(name).main(args)
 
-def _cmd_eval(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("eval", issue=3)
-
-
-def _cmd_render(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("render", issue=3)
-
-
-def _cmd_extract(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("extract", issue=4)
-
-
-def _cmd_cage(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("cage", issue=4)
+    return handler
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,12 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-seconds", type=float, metavar="S", help="stop training after S seconds")
     p.add_argument("--steps", type=int, metavar="N", help="stop training after N steps")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
-    p.set_defaults(handler=_cmd_train)
+    p.set_defaults(handler=_stage("train", issue=3))
 
     p = sub.add_parser("eval", help="print PSNR of a checkpoint over a dataset's frames")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
-    p.set_defaults(handler=_cmd_eval)
+    p.set_defaults(handler=_stage("evaluate", issue=3))
 
     p = sub.add_parser("render", help="render frames of a NeRF, optionally ray-bent by a deformed cage")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
@@ -62,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<name>.png (RGBA, straight alpha) per frame")
     p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
     p.add_argument("--deformed", metavar="V.npy", help="(N,3) deformed positions of the cage's vertices")
-    p.set_defaults(handler=_cmd_render)
+    p.set_defaults(handler=_stage("render_cli", issue=3))
 
     p = sub.add_parser("extract", help="extract a filtered surface mesh from a NeRF's density")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
@@ -70,13 +64,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, metavar="T", help="density threshold of the surface")
     p.add_argument("--resolution", type=int, metavar="R", help="grid resolution per axis (default 256)")
     p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V")
-    p.set_defaults(handler=_cmd_extract)
+    p.set_defaults(handler=_stage("extract", issue=4))
 
     p = sub.add_parser("cage", help="build the tetrahedral cage around an extracted mesh, once")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--mesh", required=True, metavar="MESH.ply", help="mesh written by `extract`")
     p.add_argument("--out", required=True, metavar="CAGE.npz", help="cage: `vertices` (N,3) and `tets` (M,4)")
-    p.set_defaults(handler=_cmd_cage)
+    p.set_defaults(handler=_stage("cage", issue=4))
 
     return parser
 
