@@ -1,0 +1,111 @@
+"""The worker process Blender talks to: wire format, a real worker on the .venv Python, failures."""
+
+import io
+import os
+import signal
+import sys
+
+import numpy as np
+import pytest
+
+from blender_nerf_deform.engine.protocol import ProtocolError, read_message, write_message
+
+from conftest import REPO
+
+
+def test_protocol_round_trip_keeps_arrays_exact():
+    arrays = {
+        "rgba": np.random.default_rng(0).random((3, 5, 4), dtype=np.float32),
+        "tets": np.arange(12, dtype=np.int64).reshape(3, 4),
+        "empty": np.zeros((0, 3)),
+        "transposed": np.arange(6.0).reshape(2, 3).T,  # non-contiguous input
+    }
+    stream = io.BytesIO()
+    write_message(stream, {"type": "result", "id": 7, "result": {"frame": 3}}, arrays)
+    write_message(stream, {"type": "shutdown"})
+    stream.seek(0)
+    header, got = read_message(stream)
+    assert header == {"type": "result", "id": 7, "result": {"frame": 3}}
+    for name, a in arrays.items():
+        assert got[name].dtype == a.dtype and np.array_equal(got[name], a), name
+    assert read_message(stream)[0] == {"type": "shutdown"}
+    assert read_message(stream) is None
+
+
+def test_protocol_rejects_truncated_and_foreign_streams():
+    stream = io.BytesIO()
+    write_message(stream, {"type": "x"}, {"a": np.ones(100)})
+    data = stream.getvalue()
+    with pytest.raises(ProtocolError, match="truncated"):
+        read_message(io.BytesIO(data[:-10]))
+    with pytest.raises(ProtocolError, match="expected"):
+        read_message(io.BytesIO(b"GARBAGE!" + data))
+
+
+@pytest.fixture
+def worker():
+    from blender_nerf_deform.addon.worker_client import WorkerClient
+
+    client = WorkerClient(str(REPO / ".venv" / "bin" / "python"))
+    yield client
+    client.stop()
+
+
+def test_worker_starts_and_answers(worker):
+    hello = worker.ensure_started()
+    assert hello["type"] == "hello" and hello["torch"].startswith("2.") and "info" in hello["ops"]
+    result, arrays = worker.call("info")
+    assert result["pid"] == worker._proc.pid and result["cuda"] in (True, False)
+    assert arrays == {}
+
+
+def test_unknown_request_is_an_input_error_and_the_worker_lives_on(worker):
+    from blender_nerf_deform.addon.worker_client import WorkerError
+
+    with pytest.raises(WorkerError, match="unknown request 'bake'") as info:
+        worker.call("bake")
+    assert info.value.kind == "input"
+    assert worker.call("info")[0]["pid"] == worker._proc.pid
+
+
+def test_async_request_is_delivered_by_drain(worker):
+    got = []
+    worker.submit("info", on_done=lambda result, arrays: got.append(result))
+    for _ in range(200):
+        if worker.drain():
+            break
+        import time
+
+        time.sleep(0.05)
+    assert len(got) == 1 and got[0]["python"]
+
+
+def test_crashed_worker_is_restarted_by_the_next_request(worker):
+    first = worker.call("info")[0]["pid"]
+    os.kill(first, signal.SIGKILL)
+    worker._proc.wait()
+    assert not worker.running
+    second = worker.call("info")[0]["pid"]
+    assert second != first
+
+
+def test_python_without_torch_gives_a_clear_setup_error():
+    from blender_nerf_deform.addon.worker_client import WorkerClient, WorkerError, python_has_torch
+
+    # The interpreter that made .venv has neither torch nor the engine's requirements.
+    base = sys._base_executable if hasattr(sys, "_base_executable") else sys.executable
+    if python_has_torch(base):
+        pytest.skip(f"{base} has torch; no torch-less Python to test with")
+    client = WorkerClient(base)
+    with pytest.raises(WorkerError, match="cannot import (torch|numpy)") as info:
+        client.ensure_started()
+    assert info.value.kind == "setup" and base in str(info.value)
+    assert not client.running
+
+
+def test_missing_worker_python_names_the_path(tmp_path):
+    from blender_nerf_deform.addon.worker_client import WorkerClient, WorkerError
+
+    missing = tmp_path / "nope" / "python"
+    with pytest.raises(WorkerError, match=f"{missing} does not exist"):
+        WorkerClient(str(missing)).call("info")

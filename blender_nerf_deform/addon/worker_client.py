@@ -1,0 +1,375 @@
+"""Client of the engine worker process (DESIGN.md: "a worker process between them").
+
+Blender never imports torch: heavy work runs in `python -m
+<package>.engine.worker` on the Python set in the add-on preferences. A reader
+thread turns the worker's stdout into messages on a queue; on Blender's main
+thread a `bpy.app.timers` function drains it and calls the request's callbacks
+(the documented way to bring results from another thread). Blocking callers
+that are not on the main thread's event loop (the RenderEngine, `blender -b`)
+use `call()`, which waits for its own answer and leaves the others queued.
+
+A worker that crashes or lacks torch fails the pending requests with a clear
+message; the next request starts a fresh one. Blender's scene is never touched
+from here: callbacks decide what to do with results.
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..engine.protocol import ProtocolError, read_message, write_message
+
+# The extension's package folder and its name (`blender_nerf_deform`, whatever
+# `bl_ext.<repo>.` prefix Blender gives the module); the worker imports the
+# engine from the folder's parent.
+PACKAGE_DIR = Path(__file__).resolve().parent.parent
+WORKER_MODULE = f"{PACKAGE_DIR.name}.engine.worker"
+START_TIMEOUT_S = 120.0
+_STDERR_LINES = 40
+
+
+class WorkerError(Exception):
+    """The request failed; the message is written for Blender's report."""
+
+    def __init__(self, message: str, kind: str = "internal", details: str = ""):
+        super().__init__(message)
+        self.kind = kind
+        self.details = details
+
+
+@dataclass
+class _Request:
+    id: int
+    on_done: Callable[[dict, dict], None] | None = None
+    on_error: Callable[[WorkerError], None] | None = None
+    on_progress: Callable[[float, str], None] | None = None
+    inbox: queue.Queue = field(default_factory=queue.Queue)
+    blocking: bool = False
+
+
+def python_has_torch(python: str) -> bool:
+    """Whether `python` can import torch (asked without importing it: fast)."""
+    try:
+        proc = subprocess.run(
+            [python, "-c", "import importlib.util, sys; sys.exit(importlib.util.find_spec('torch') is None)"],
+            capture_output=True,
+            timeout=30,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return proc.returncode == 0
+
+
+def candidate_pythons(preferred: str = "") -> list[str]:
+    """Where to look for a worker Python, best first: the preference, $NERF_DEFORM_PYTHON,
+    the .venv of a source checkout the add-on runs from, python3.11 and python3 on PATH."""
+    found = [preferred, os.environ.get("NERF_DEFORM_PYTHON", "")]
+    found.append(str(PACKAGE_DIR.parent / ".venv" / "bin" / "python"))
+    found += [shutil.which(name) or "" for name in ("python3.11", "python3")]
+    unique = []
+    for python in found:
+        if python and python not in unique and Path(python).is_file():
+            unique.append(python)
+    return unique
+
+
+def detect_python(preferred: str = "") -> str | None:
+    """The preferred Python if set, else the first candidate that has torch."""
+    if preferred:
+        return preferred
+    return next((python for python in candidate_pythons() if python_has_torch(python)), None)
+
+
+class WorkerClient:
+    """One worker process and its requests. Thread-safe for submitting; callbacks run on the draining thread."""
+
+    def __init__(self, python: str):
+        self.python = python
+        self.hello: dict | None = None
+        self._proc: subprocess.Popen | None = None
+        self._requests: dict[int, _Request] = {}
+        self._ids = itertools.count(1)
+        self._lock = threading.RLock()
+        self._main_inbox: queue.Queue = queue.Queue()
+        self._stderr_tail: collections.deque[str] = collections.deque(maxlen=_STDERR_LINES)
+
+    # -- process lifecycle -------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def ensure_started(self) -> dict:
+        """Start the worker if it is not running; returns its hello (Python, torch, CUDA)."""
+        with self._lock:
+            if self.running and self.hello is not None:
+                return self.hello
+            self._start()
+            return self.hello
+
+    def _start(self) -> None:
+        if not self.python:
+            raise WorkerError("no worker Python is set: set NeRF Deform's Worker Python preference to a Python 3.11 with torch", "setup")
+        if not Path(self.python).is_file():
+            raise WorkerError(f"worker Python {self.python} does not exist: fix NeRF Deform's Worker Python preference", "setup")
+        env = dict(os.environ)
+        env.pop("PYTHONHOME", None)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PACKAGE_DIR.parent), env.get("PYTHONPATH", "")) if p)
+        env["PYTHONUNBUFFERED"] = "1"
+        self._stderr_tail.clear()
+        try:
+            proc = subprocess.Popen(
+                [self.python, "-m", WORKER_MODULE],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                env=env,
+                cwd=str(PACKAGE_DIR.parent),
+            )
+        except OSError as exc:
+            raise WorkerError(f"cannot start worker Python {self.python}: {exc}", "setup") from None
+        self._proc = proc
+        threading.Thread(target=self._pump_stderr, args=(proc,), name="nerf-worker-stderr", daemon=True).start()
+        first: queue.Queue = queue.Queue()
+        threading.Thread(target=self._pump_stdout, args=(proc, first), name="nerf-worker-stdout", daemon=True).start()
+        try:
+            header, _ = first.get(timeout=START_TIMEOUT_S)
+        except queue.Empty:
+            self._kill()
+            raise WorkerError(f"worker Python {self.python} did not start within {START_TIMEOUT_S:.0f} s", "setup") from None
+        if header.get("type") == "fatal":
+            self._kill()
+            raise WorkerError(header["message"], "setup")
+        if header.get("type") != "hello":
+            self._kill()
+            raise WorkerError(f"worker Python {self.python} failed to start: {self._exit_report()}", "setup")
+        self.hello = header
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+
+    def stop(self) -> None:
+        """Ask the worker to finish, then make sure it is gone."""
+        with self._lock:
+            proc, self._proc = self._proc, None
+            pending = list(self._requests.values())
+            self._requests.clear()
+        for request in pending:
+            self._deliver(request, ({"type": "error", "id": request.id, "kind": "cancelled", "message": "the NeRF worker was stopped"}, {}))
+        with self._lock:
+            if proc is None:
+                return
+            try:
+                write_message(proc.stdin, {"type": "shutdown"})
+                proc.stdin.close()
+                proc.wait(timeout=5)
+            except (OSError, subprocess.TimeoutExpired, ValueError):
+                proc.kill()
+                proc.wait()
+
+    def _exit_report(self) -> str:
+        code = self._proc.poll() if self._proc is not None else None
+        tail = "\n".join(self._stderr_tail).strip()
+        what = f"exited with code {code}" if code is not None else "stopped answering"
+        return f"{what}" + (f"; its last output:\n{tail}" if tail else "")
+
+    # -- reader threads ------------------------------------------------------
+
+    def _pump_stderr(self, proc: subprocess.Popen) -> None:
+        for raw in proc.stderr:
+            line = raw.decode(errors="replace").rstrip()
+            self._stderr_tail.append(line)
+            print(f"[nerf worker] {line}", file=sys.stderr)
+
+    def _pump_stdout(self, proc: subprocess.Popen, first: queue.Queue) -> None:
+        """Route each message to its request's inbox; on exit, fail what is pending."""
+        got_first = False
+        try:
+            while (message := read_message(proc.stdout)) is not None:
+                if not got_first:
+                    got_first = True
+                    first.put(message)
+                    continue
+                self._route(message)
+        except (ProtocolError, OSError, ValueError) as exc:
+            self._stderr_tail.append(f"(protocol: {exc})")
+        proc.wait()
+        if not got_first:
+            first.put(({"type": "exited"}, {}))
+        if self._proc is proc:
+            error = WorkerError(f"the NeRF worker {self._exit_report()}", "crashed")
+            with self._lock:
+                pending = list(self._requests.values())
+                self._requests.clear()
+            for request in pending:
+                self._deliver(request, ({"type": "error", "id": request.id, "kind": "crashed", "message": str(error)}, {}))
+
+    def _route(self, message: tuple[dict, dict]) -> None:
+        header, _ = message
+        with self._lock:
+            request = self._requests.get(header.get("id"))
+            if request is not None and header.get("type") in ("result", "error"):
+                del self._requests[request.id]
+        if request is not None:
+            self._deliver(request, message)
+
+    def _deliver(self, request: _Request, message: tuple[dict, dict]) -> None:
+        if request.blocking:
+            request.inbox.put(message)
+        else:
+            self._main_inbox.put((request, message))
+
+    # -- requests --------------------------------------------------------------
+
+    def _send_request(self, request: _Request, op: str, params: dict, arrays: dict[str, np.ndarray] | None) -> None:
+        self.ensure_started()
+        with self._lock:
+            self._requests[request.id] = request
+            try:
+                write_message(self._proc.stdin, {"type": "request", "id": request.id, "op": op, "params": params}, arrays)
+            except (OSError, ValueError):
+                del self._requests[request.id]
+                raise WorkerError(f"the NeRF worker {self._exit_report()}", "crashed") from None
+
+    def submit(
+        self,
+        op: str,
+        params: dict | None = None,
+        arrays: dict[str, np.ndarray] | None = None,
+        *,
+        on_done: Callable[[dict, dict], None] | None = None,
+        on_error: Callable[[WorkerError], None] | None = None,
+        on_progress: Callable[[float, str], None] | None = None,
+    ) -> int:
+        """Send a request without waiting; callbacks run when `drain()` runs (a Blender timer)."""
+        request = _Request(next(self._ids), on_done, on_error, on_progress)
+        self._send_request(request, op, params or {}, arrays)
+        return request.id
+
+    def cancel(self, request_id: int) -> None:
+        with self._lock:
+            if request_id in self._requests and self.running:
+                try:
+                    write_message(self._proc.stdin, {"type": "cancel", "id": request_id})
+                except (OSError, ValueError):
+                    pass
+
+    @property
+    def busy(self) -> bool:
+        return bool(self._requests) or not self._main_inbox.empty()
+
+    def drain(self) -> int:
+        """Run the callbacks of messages that arrived; call on Blender's main thread. Returns how many."""
+        handled = 0
+        while True:
+            try:
+                request, (header, arrays) = self._main_inbox.get_nowait()
+            except queue.Empty:
+                return handled
+            handled += 1
+            kind = header.get("type")
+            if kind == "progress" and request.on_progress:
+                request.on_progress(header["fraction"], header.get("message", ""))
+            elif kind == "result" and request.on_done:
+                request.on_done(header["result"], arrays)
+            elif kind == "error" and request.on_error:
+                request.on_error(_error_from(header))
+
+    def call(
+        self,
+        op: str,
+        params: dict | None = None,
+        arrays: dict[str, np.ndarray] | None = None,
+        *,
+        on_progress: Callable[[float, str], None] | None = None,
+        should_cancel: Callable[[], bool] | None = None,
+        poll_s: float = 0.05,
+    ) -> tuple[dict, dict[str, np.ndarray]]:
+        """Send a request and wait for its answer (for renders and scripts).
+
+        `should_cancel` is polled while waiting (RenderEngine.test_break); when it
+        returns True the request is cancelled and WorkerError(kind="cancelled") raised.
+        """
+        request = _Request(next(self._ids), blocking=True)
+        self._send_request(request, op, params or {}, arrays)
+        cancel_sent = False
+        while True:
+            try:
+                header, out_arrays = request.inbox.get(timeout=poll_s)
+            except queue.Empty:
+                if should_cancel is not None and not cancel_sent and should_cancel():
+                    self.cancel(request.id)
+                    cancel_sent = True
+                continue
+            kind = header.get("type")
+            if kind == "progress":
+                if on_progress:
+                    on_progress(header["fraction"], header.get("message", ""))
+            elif kind == "result":
+                return header["result"], out_arrays
+            elif kind == "error":
+                raise _error_from(header)
+
+
+def _error_from(header: dict) -> WorkerError:
+    return WorkerError(header.get("message", "unknown error"), header.get("kind", "internal"), header.get("traceback", ""))
+
+
+# -- the add-on's one worker, drained by a Blender timer ---------------------------
+
+_client: WorkerClient | None = None
+_DRAIN_BUSY_S = 0.05
+_DRAIN_IDLE_S = 0.25
+
+
+def get_client(python: str) -> WorkerClient:
+    """The shared worker for this Blender session, restarted on another Python."""
+    global _client
+    if _client is None or _client.python != python:
+        if _client is not None:
+            _client.stop()
+        _client = WorkerClient(python)
+    _ensure_timer()
+    return _client
+
+
+def _drain_timer() -> float | None:
+    if _client is None:
+        return None
+    _client.drain()
+    # Keeps running while a client exists: answers can arrive at any time.
+    return _DRAIN_BUSY_S if _client.busy else _DRAIN_IDLE_S
+
+
+def _ensure_timer() -> None:
+    import bpy
+
+    if not bpy.app.timers.is_registered(_drain_timer):
+        bpy.app.timers.register(_drain_timer, first_interval=_DRAIN_BUSY_S, persistent=True)
+
+
+def shutdown() -> None:
+    """Stop the worker (add-on disabled, Blender quitting)."""
+    global _client
+    import bpy
+
+    if bpy.app.timers.is_registered(_drain_timer):
+        bpy.app.timers.unregister(_drain_timer)
+    if _client is not None:
+        _client.stop()
+        _client = None

@@ -1,0 +1,87 @@
+"""The wire format between Blender (the add-on) and the engine worker process.
+
+Standard library, plus numpy once arrays travel, so both sides import it (the
+add-on may import engine modules that do not reach torch), and a worker on a
+Python without numpy can still say so. One message is:
+
+    b"NDW1" | u32 length of the JSON header | JSON header | raw array bytes...
+
+The header's "_arrays" lists each array's name, dtype, shape and byte count, in
+the order their bytes follow. Arrays travel as raw bytes, not pickles, so a
+message never executes code when read and large frames cost one copy.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import TYPE_CHECKING, BinaryIO
+
+if TYPE_CHECKING:
+    import numpy as np
+
+MAGIC = b"NDW1"
+_LENGTH = struct.Struct("<I")
+_MAX_HEADER = 64 * 1024 * 1024
+
+
+class ProtocolError(Exception):
+    """The stream is not a worker conversation (bad magic, truncated message, bad header)."""
+
+
+def write_message(stream: BinaryIO, header: dict, arrays: dict[str, np.ndarray] | None = None) -> None:
+    if arrays:
+        import numpy as np
+
+        arrays = {name: np.ascontiguousarray(a) for name, a in arrays.items()}
+    else:
+        arrays = {}
+    header = dict(header)
+    header["_arrays"] = [
+        {"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "nbytes": int(a.nbytes)} for name, a in arrays.items()
+    ]
+    body = json.dumps(header, separators=(",", ":")).encode()
+    stream.write(MAGIC + _LENGTH.pack(len(body)) + body)
+    for a in arrays.values():
+        if a.nbytes:  # memoryview cannot cast an empty array
+            stream.write(memoryview(a).cast("B"))
+    stream.flush()
+
+
+def _read_exact(stream: BinaryIO, n: int) -> bytes:
+    chunks, left = [], n
+    while left:
+        chunk = stream.read(left)
+        if not chunk:
+            raise ProtocolError(f"stream ended {left} bytes into a {n}-byte read (truncated message)")
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
+def read_message(stream: BinaryIO) -> tuple[dict, dict[str, np.ndarray]] | None:
+    """The next (header, arrays), or None when the stream ended cleanly between messages.
+
+    Arrays are read-only views of the received bytes; copy one to modify it."""
+    start = stream.read(len(MAGIC))
+    if not start:
+        return None
+    if len(start) < len(MAGIC):
+        start += _read_exact(stream, len(MAGIC) - len(start))
+    if start != MAGIC:
+        raise ProtocolError(f"expected {MAGIC!r} at the start of a message, got {start!r}")
+    (length,) = _LENGTH.unpack(_read_exact(stream, _LENGTH.size))
+    if length > _MAX_HEADER:
+        raise ProtocolError(f"message header of {length} bytes is larger than the {_MAX_HEADER} allowed")
+    try:
+        header = json.loads(_read_exact(stream, length))
+        specs = header.pop("_arrays")
+    except (ValueError, KeyError) as exc:
+        raise ProtocolError(f"unreadable message header: {exc}") from None
+    arrays = {}
+    if specs:
+        import numpy as np
+    for spec in specs:
+        data = _read_exact(stream, spec["nbytes"])
+        arrays[spec["name"]] = np.frombuffer(data, dtype=np.dtype(spec["dtype"])).reshape(spec["shape"])
+    return header, arrays
