@@ -1,0 +1,134 @@
+"""The cage and the surface embedding, stored in the .blend.
+
+The cage is built once and must render the same frames in a fresh `blender -b`
+process or on a farm, so its exact data lives in the file:
+
+- The cage object: a mesh whose vertices are the rest cage's vertices (so
+  Armature, Lattice or any modifier on it can deform them) and whose faces are
+  the cage's boundary triangles (what an artist needs to see). The exact rest
+  positions (float64; mesh vertices are float32) and the tetrahedra are ID
+  properties of its mesh datablock.
+- The extracted mesh: its embedding in the rest cage, one tet and four
+  barycentric weights per vertex, also as ID properties of its mesh.
+
+ID property arrays are stored compactly and read back through the buffer
+protocol, so a 100k-tet cage costs milliseconds to store and load.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+REST_KEY = "nerf_deform_rest_vertices"
+TETS_KEY = "nerf_deform_tets"
+EMBED_TET_KEY = "nerf_deform_embed_tet"
+EMBED_WEIGHTS_KEY = "nerf_deform_embed_weights"
+EMBED_COUNT_KEY = "nerf_deform_embed_vertex_count"
+
+
+class CageDataError(ValueError):
+    """Stored cage or embedding data is missing or no longer matches its mesh."""
+
+
+def boundary_triangles(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(K,3) boundary faces of a tet mesh (faces used by exactly one tet), wound outward."""
+    tets = np.asarray(tets, dtype=np.int64)
+    # Face opposite each vertex; wound outward for a positively oriented tet.
+    faces = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
+    opposite = np.concatenate([tets[:, 0], tets[:, 1], tets[:, 2], tets[:, 3]])
+    key = np.sort(faces, axis=1)
+    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    once = first[counts == 1]
+    faces, opposite = faces[once], opposite[once]
+    # Wind each face away from its tet's fourth vertex, whatever the tet's orientation.
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    inward = np.einsum("ij,ij->i", normal, vertices[opposite] - a) > 0
+    faces[inward] = faces[inward][:, [0, 2, 1]]
+    return faces
+
+
+def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray) -> None:
+    """Write the rest cage into `cage_mesh` (replacing its geometry) and its exact data as ID properties."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    tets = np.asarray(tets)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or tets.ndim != 2 or tets.shape[1] != 4:
+        raise CageDataError(f"cage must be vertices (N,3) and tets (M,4), got {vertices.shape} and {tets.shape}")
+    if tets.size and (tets.min() < 0 or tets.max() >= len(vertices)):
+        raise CageDataError(f"cage tets index vertices outside 0..{len(vertices) - 1}")
+    faces = boundary_triangles(vertices, tets)
+    cage_mesh.clear_geometry()
+    cage_mesh.vertices.add(len(vertices))
+    cage_mesh.vertices.foreach_set("co", vertices.astype(np.float32).ravel())
+    cage_mesh.loops.add(3 * len(faces))
+    cage_mesh.loops.foreach_set("vertex_index", faces.astype(np.int32).ravel())
+    cage_mesh.polygons.add(len(faces))
+    cage_mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(faces), 3, dtype=np.int32))
+    cage_mesh.update(calc_edges=True)
+    cage_mesh[REST_KEY] = vertices.ravel()
+    cage_mesh[TETS_KEY] = tets.astype(np.int32).ravel()
+
+
+def has_cage(cage_mesh: bpy.types.Mesh | None) -> bool:
+    return cage_mesh is not None and REST_KEY in cage_mesh and TETS_KEY in cage_mesh
+
+
+def load_cage(cage_mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(rest vertices (N,3) float64, tets (M,4) int64) as stored; checks they still match the mesh."""
+    if not has_cage(cage_mesh):
+        raise CageDataError(f"mesh '{cage_mesh.name}' holds no NeRF cage: run Build Cage")
+    rest = np.asarray(cage_mesh[REST_KEY], dtype=np.float64).reshape(-1, 3)
+    tets = np.asarray(cage_mesh[TETS_KEY], dtype=np.int64).reshape(-1, 4)
+    if len(cage_mesh.vertices) != len(rest):
+        raise CageDataError(
+            f"cage mesh '{cage_mesh.name}' has {len(cage_mesh.vertices)} vertices but its cage has {len(rest)}: "
+            "its vertices were added or deleted in Edit Mode; rebuild the cage (Build Cage)"
+        )
+    return rest, tets
+
+
+def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+    """Cage vertices after the cage object's modifiers (Armature, Lattice, ...), in its local frame."""
+    evaluated = cage_object.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        n = len(mesh.vertices)
+        if n != len(cage_object.data.vertices):
+            raise CageDataError(
+                f"the modifiers of cage '{cage_object.name}' change its vertex count ({len(cage_object.data.vertices)} → {n}); "
+                "use deforming modifiers only (Armature, Lattice, Simple Deform, ...)"
+            )
+        co = np.empty(3 * n, dtype=np.float32)
+        mesh.vertices.foreach_get("co", co)
+    finally:
+        evaluated.to_mesh_clear()
+    return co.reshape(-1, 3).astype(np.float64)
+
+
+def store_embedding(mesh: bpy.types.Mesh, tet_ids: np.ndarray, weights: np.ndarray) -> None:
+    """Embed `mesh`'s vertices in the rest cage: vertex k = weights[k] · cage[tets[tet_ids[k]]]."""
+    tet_ids = np.asarray(tet_ids)
+    weights = np.ascontiguousarray(weights, dtype=np.float64)
+    if tet_ids.shape != (len(mesh.vertices),) or weights.shape != (len(mesh.vertices), 4):
+        raise CageDataError(
+            f"embedding of '{mesh.name}' needs one tet and 4 weights per vertex ({len(mesh.vertices)}), "
+            f"got {tet_ids.shape} and {weights.shape}"
+        )
+    mesh[EMBED_TET_KEY] = tet_ids.astype(np.int32)
+    mesh[EMBED_WEIGHTS_KEY] = weights.ravel()
+    mesh[EMBED_COUNT_KEY] = len(mesh.vertices)
+
+
+def load_embedding(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(tet id per vertex (V,), weights (V,4)) as stored; checks they still match the mesh."""
+    if EMBED_TET_KEY not in mesh or EMBED_WEIGHTS_KEY not in mesh:
+        raise CageDataError(f"mesh '{mesh.name}' is not embedded in a cage: run Build Cage")
+    if mesh.get(EMBED_COUNT_KEY) != len(mesh.vertices):
+        raise CageDataError(
+            f"mesh '{mesh.name}' has {len(mesh.vertices)} vertices but was embedded with {mesh.get(EMBED_COUNT_KEY)}: "
+            "rebuild the cage (Build Cage)"
+        )
+    tet_ids = np.asarray(mesh[EMBED_TET_KEY], dtype=np.int64)
+    weights = np.asarray(mesh[EMBED_WEIGHTS_KEY], dtype=np.float64).reshape(-1, 4)
+    return tet_ids, weights
