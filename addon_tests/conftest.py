@@ -23,6 +23,8 @@ os.environ["BLENDER_USER_RESOURCES"] = _user_resources
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from dataset_fixtures import *  # noqa: E402,F401,F403  (default scene + procedural_dataset, session-scoped)
+
 
 @pytest.fixture
 def blender():

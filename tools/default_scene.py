@@ -117,7 +117,8 @@ def _box(bpy, name: str, bounds, divisions, colour_of, material):
 
 def _emission_material(bpy):
     mat = bpy.data.materials.new("DefaultSceneEmission")
-    mat.use_nodes = True
+    if mat.node_tree is None:  # Blender < 5.0 (5.0 always has node trees; use_nodes is deprecated)
+        mat.use_nodes = True
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     nodes.clear()
     attribute = nodes.new("ShaderNodeVertexColor")
@@ -172,7 +173,8 @@ def build(bpy) -> dict:
 
     # A black, zero-strength world: nothing lights the scene, the emission is the look.
     world = bpy.data.worlds.new("DefaultSceneWorld")
-    world.use_nodes = True
+    if world.node_tree is None:
+        world.use_nodes = True
     background = world.node_tree.nodes.get("Background")
     if background is not None:
         background.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)

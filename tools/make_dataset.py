@@ -217,8 +217,8 @@ def _import_bpy():
     return bpy
 
 
-def _open_blend(bpy, blend: Path) -> None:
-    blend = Path(blend)
+def _check_blend_file(blend: Path) -> None:
+    """Fail fast (before Blender starts) on a missing or foreign file."""
     if not blend.is_file():
         raise DatasetError(f"--blend: no such file: {blend}")
     with blend.open("rb") as f:
@@ -226,11 +226,14 @@ def _open_blend(bpy, blend: Path) -> None:
     # Blender files start with "BLENDER" (uncompressed), or are gzip / zstd compressed.
     if not (head.startswith(b"BLENDER") or head.startswith(b"\x1f\x8b") or head.startswith(b"\x28\xb5\x2f\xfd")):
         raise DatasetError(f"--blend: not a .blend file: {blend}")
+
+
+def _open_blend(bpy, blend: Path) -> None:
     try:
         bpy.ops.wm.open_mainfile(filepath=str(blend.resolve()), load_ui=False)
     except RuntimeError as exc:
-        message = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unknown error"
-        raise DatasetError(f"--blend: Blender cannot open {blend}: {message}") from exc
+        lines = [line for line in str(exc).strip().splitlines() if line.strip()]
+        raise DatasetError(f"--blend: Blender cannot open {blend}: {lines[-1] if lines else 'unknown error'}") from exc
 
 
 def _renderable_objects(scene) -> list:
@@ -390,10 +393,13 @@ def make_dataset(out, blend=None, progress=print, quiet: bool = True, **options)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out: exists and is not a folder: {out}")
 
+    if blend is not None:
+        blend = Path(blend)
+        _check_blend_file(blend)
     bpy = _import_bpy()
     started = time.perf_counter()
     if blend is not None:
-        _open_blend(bpy, Path(blend))
+        _open_blend(bpy, blend)
     scene = bpy.context.scene
     objects = _renderable_objects(scene)
     where = f"{blend}" if blend is not None else "the loaded scene"
