@@ -306,3 +306,13 @@ def test_same_seed_same_cameras_other_seed_other_cameras():
     assert (a[:, 2] >= 0.3).all()
     r = camera_positions(200, 2.0, seed=1, layout="random")
     assert np.allclose(np.linalg.norm(r, axis=1), 2.0) and r[:, 2].min() < -1 and r[:, 2].max() > 1
+
+
+def test_factory_caches_and_honours_its_arguments(make_procedural_dataset, procedural_dataset):
+    assert make_procedural_dataset() == procedural_dataset
+    small = make_procedural_dataset(count=3, resolution=20, test_count=0, samples=2, hemisphere=True, seed=4)
+    assert make_procedural_dataset(count=3, resolution=20, test_count=0, samples=2, hemisphere=True, seed=4) == small
+    meta = json.loads((small / "transforms.json").read_text())
+    assert (meta["w"], meta["h"], len(meta["frames"])) == (20, 20, 3)
+    assert not (small / "test").exists()
+    assert all(np.array(f["transform_matrix"])[2, 3] > 0 for f in meta["frames"])  # upper hemisphere

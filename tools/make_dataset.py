@@ -11,7 +11,17 @@ the `bpy` module (Blender as a Python module), no Blender UI:
 Cameras sit on a sphere (or the upper hemisphere, +Z up) of the given radius
 around the target point and look at it. Each view is rendered by Cycles on the
 CPU over a transparent film and saved as an 8-bit RGBA PNG with straight
-(unassociated) alpha: background alpha 0, opaque surfaces alpha 1.
+(unassociated) alpha: background alpha 0, opaque surfaces alpha 1. Cycles'
+pixel filter is set to a one-pixel box, so a pixel is the average over its own
+area, centred where the NeRF's ray goes. The view transform is "Standard"
+unless --view-transform says otherwise (Blender 5's default AgX would tint
+colours); the .blend on disk is never modified.
+
+Why Cycles on the CPU: it needs no GPU or display. With the bpy module headless
+(Blender 5.0.1, no GPU), Workbench renders through a software EGL context
+(with EGL errors printed) and EEVEE spends ~30 s compiling shaders for one
+64x48 view, while Cycles renders such a view in a few milliseconds to a tenth
+of a second and gives identical results on any machine.
 
 What is written (the NeRF-synthetic / instant-ngp form, read by the engine):
 
