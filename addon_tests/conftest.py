@@ -36,6 +36,16 @@ def blender():
     bpy.ops.wm.read_factory_settings(use_empty=True)
 
 
+@pytest.fixture
+def addon(blender):
+    """The add-on registered by direct import, in factory settings; unregistered after."""
+    import blender_nerf_deform
+
+    blender_nerf_deform.register()
+    yield blender
+    blender_nerf_deform.unregister()
+
+
 @pytest.fixture(scope="session")
 def extension_zip(tmp_path_factory) -> Path:
     """The extension zip built by tools/build_extension.py (validated by Blender's tool)."""

@@ -89,6 +89,26 @@ def test_crashed_worker_is_restarted_by_the_next_request(worker):
     assert second != first
 
 
+def test_request_pending_when_the_worker_dies_fails_clearly(worker):
+    import time
+
+    from blender_nerf_deform.addon.worker_client import WorkerError
+
+    pid = worker.call("info")[0]["pid"]
+    os.kill(pid, signal.SIGSTOP)  # frozen: it cannot answer what we send now
+    errors = []
+    worker.submit("info", on_error=errors.append, on_done=lambda *a: errors.append("answered"))
+    os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 30
+    while not errors and time.monotonic() < deadline:
+        worker.drain()
+        time.sleep(0.02)
+    (error,) = errors
+    assert isinstance(error, WorkerError) and error.kind == "crashed"
+    assert "exited with code -9" in str(error)
+    assert worker.call("info")[0]["pid"] != pid  # the next request restarts it
+
+
 def test_python_without_torch_gives_a_clear_setup_error():
     from blender_nerf_deform.addon.worker_client import WorkerClient, WorkerError, python_has_torch
 

@@ -4,11 +4,9 @@ Properties, operators, panels and the RenderEngine live here; heavy work is
 sent to the engine in a worker process.
 """
 
-import bpy
+from . import handles, panel, preferences, properties, render_engine
 
-from . import panel, preferences, render_engine
-
-_modules = (preferences, render_engine, panel)
+_modules = (preferences, properties, handles, render_engine, panel)
 
 
 def register():

@@ -2,6 +2,8 @@
 
 import bpy
 
+from .properties import handles_of, owning_nerf
+
 
 class NERFDEFORM_PT_main(bpy.types.Panel):
     bl_label = "NeRF Deform"
@@ -11,8 +13,25 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
     bl_category = "NeRF Deform"
 
     def draw(self, context):
-        # Placeholder until the add-on issue lands its operators.
-        self.layout.label(text="Load a NeRF to begin (coming soon).")
+        layout = self.layout
+        nerf = owning_nerf(context.active_object)
+        if nerf is None:
+            layout.label(text="Select a NeRF object, or load one.")
+            return
+        s = nerf.nerf_deform
+        layout.label(text=nerf.name, icon="OUTLINER_OB_EMPTY")
+        layout.prop(s, "checkpoint")
+        layout.prop(s, "deformation_mode")
+
+        box = layout.box()
+        box.label(text="Handles")
+        col = box.column(align=True)
+        col.operator("nerf_deform.add_handle", icon="EMPTY_AXIS")
+        col.operator("nerf_deform.pin_selection", icon="PINNED")
+        col.operator("nerf_deform.remove_handle", icon="X")
+        col.operator("nerf_deform.reset_pose", icon="LOOP_BACK")
+        for handle in handles_of(nerf):
+            box.label(text=f"{handle.name}", icon="EMPTY_DATA")
 
 
 _classes = (NERFDEFORM_PT_main,)

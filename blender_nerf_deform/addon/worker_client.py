@@ -58,6 +58,7 @@ class _Request:
     on_progress: Callable[[float, str], None] | None = None
     inbox: queue.Queue = field(default_factory=queue.Queue)
     blocking: bool = False
+    proc: subprocess.Popen | None = None  # the worker it was sent to
 
 
 def python_has_torch(python: str) -> bool:
@@ -211,13 +212,17 @@ class WorkerClient:
         proc.wait()
         if not got_first:
             first.put(({"type": "exited"}, {}))
-        if self._proc is proc:
-            error = WorkerError(f"the NeRF worker {self._exit_report()}", "crashed")
-            with self._lock:
-                pending = list(self._requests.values())
-                self._requests.clear()
+        # Fail exactly the requests this process had; a restarted worker's are not ours.
+        with self._lock:
+            pending = [r for r in self._requests.values() if r.proc is proc]
             for request in pending:
-                self._deliver(request, ({"type": "error", "id": request.id, "kind": "crashed", "message": str(error)}, {}))
+                del self._requests[request.id]
+        if pending:
+            message = f"the NeRF worker exited with code {proc.returncode}"
+            tail = "\n".join(self._stderr_tail).strip()
+            message += f"; its last output:\n{tail}" if tail else ""
+            for request in pending:
+                self._deliver(request, ({"type": "error", "id": request.id, "kind": "crashed", "message": message}, {}))
 
     def _route(self, message: tuple[dict, dict]) -> None:
         header, _ = message
@@ -237,8 +242,9 @@ class WorkerClient:
     # -- requests --------------------------------------------------------------
 
     def _send_request(self, request: _Request, op: str, params: dict, arrays: dict[str, np.ndarray] | None) -> None:
-        self.ensure_started()
         with self._lock:
+            self.ensure_started()
+            request.proc = self._proc
             self._requests[request.id] = request
             try:
                 write_message(self._proc.stdin, {"type": "request", "id": request.id, "op": op, "params": params}, arrays)

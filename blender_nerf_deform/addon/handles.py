@@ -1,0 +1,213 @@
+"""Handles: Empties that move regions of the extracted surface, and pinned regions.
+
+A handle's region is a vertex group of the surface mesh (so an artist can see
+and edit it with Blender's own tools); the Empty carries the pose. Anything
+that moves an Empty moves the region: its gizmos, keyframes, drivers,
+constraints, a parent bone. The target transform of a region is the handle's
+matrix in the NeRF's frame times the inverse of its rest matrix.
+"""
+
+from __future__ import annotations
+
+import bpy  # first: bmesh is importable only once bpy is loaded (the bpy module from PyPI)
+import bmesh  # noqa: I001
+import numpy as np
+from mathutils import Matrix
+
+from .properties import PIN_GROUP, handles_of, owning_nerf
+
+
+def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
+    """Indices of the selected vertices of a mesh, in Edit Mode or not."""
+    if surface.mode == "EDIT":
+        bm = bmesh.from_edit_mesh(surface.data)
+        return np.array([v.index for v in bm.verts if v.select], dtype=np.int64)
+    flags = np.zeros(len(surface.data.vertices), dtype=bool)
+    surface.data.vertices.foreach_get("select", flags)
+    return np.flatnonzero(flags)
+
+
+def group_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
+    """Indices of the vertices in a vertex group (any weight > 0), read in Object Mode data."""
+    group = surface.vertex_groups.get(group_name)
+    if group is None:
+        return np.zeros(0, dtype=np.int64)
+    gi = group.index
+    return np.array(
+        [v.index for v in surface.data.vertices if any(g.group == gi and g.weight > 0 for g in v.groups)], dtype=np.int64
+    )
+
+
+def _matrix_in_nerf(nerf: bpy.types.Object, obj: bpy.types.Object) -> Matrix:
+    return nerf.matrix_world.inverted_safe() @ obj.matrix_world
+
+
+def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object) -> np.ndarray:
+    """4x4 affine (NeRF frame) that takes the handle's region from rest to where the handle is now."""
+    rest = Matrix(np.reshape(handle.nerf_deform.rest_matrix, (4, 4)).tolist())
+    return np.array(_matrix_in_nerf(nerf, handle) @ rest.inverted_safe())
+
+
+def _surface_of(context) -> tuple[bpy.types.Object | None, bpy.types.Object | None]:
+    obj = context.active_object
+    if obj is None or obj.type != "MESH" or obj.nerf_deform.role != "SURFACE":
+        return None, None
+    return obj, owning_nerf(obj)
+
+
+def _overlaps(surface: bpy.types.Object, nerf: bpy.types.Object, vertices: np.ndarray, skip_group: str = "") -> str | None:
+    """Name of a region (handle or pin) that already owns some of `vertices`, if any."""
+    regions = [(h.name, h.nerf_deform.region) for h in handles_of(nerf)] + [("the pinned region", PIN_GROUP)]
+    for owner, group in regions:
+        if group == skip_group:
+            continue
+        shared = np.intersect1d(vertices, group_vertices(surface, group))
+        if len(shared):
+            return f"{owner} ({len(shared)} vertices)"
+    return None
+
+
+def _add_to_group(surface: bpy.types.Object, group_name: str, vertices: np.ndarray) -> bpy.types.VertexGroup:
+    """Add vertices to a vertex group (created if missing); works from Edit Mode by leaving it briefly."""
+    was_edit = surface.mode == "EDIT"
+    if was_edit:
+        bpy.ops.object.mode_set(mode="OBJECT")
+    group = surface.vertex_groups.get(group_name) or surface.vertex_groups.new(name=group_name)
+    group.add(vertices.tolist(), 1.0, "REPLACE")
+    if was_edit:
+        bpy.ops.object.mode_set(mode="EDIT")
+    return group
+
+
+class NERFDEFORM_OT_add_handle(bpy.types.Operator):
+    """Make a handle (an Empty at their centroid) that moves the selected vertices of the extracted mesh"""
+
+    bl_idname = "nerf_deform.add_handle"
+    bl_label = "Add Handle"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        surface, nerf = _surface_of(context)
+        if surface is None or surface.mode != "EDIT":
+            cls.poll_message_set("Select vertices of a NeRF's extracted mesh in Edit Mode")
+            return False
+        return nerf is not None
+
+    def execute(self, context):
+        surface, nerf = _surface_of(context)
+        vertices = selected_vertices(surface)
+        if len(vertices) == 0:
+            self.report({"ERROR"}, "No vertices selected: select the region to move on the extracted mesh in Edit Mode")
+            return {"CANCELLED"}
+        if (other := _overlaps(surface, nerf, vertices)) is not None:
+            self.report({"ERROR"}, f"The selection overlaps {other}: deselect those vertices or remove that region first")
+            return {"CANCELLED"}
+
+        co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
+        bpy.ops.object.mode_set(mode="OBJECT")  # flush the edit-mode selection and positions
+        surface.data.vertices.foreach_get("co", co)
+        region = co.reshape(-1, 3)[vertices]
+        centroid = region.mean(axis=0)
+        extent = float(np.ptp(region, axis=0).max()) if len(region) > 1 else 0.1
+
+        handle = bpy.data.objects.new(f"{nerf.name} Handle", None)
+        handle.empty_display_type = "SPHERE"
+        handle.empty_display_size = max(0.5 * extent, 0.05)
+        for collection in nerf.users_collection:
+            collection.objects.link(handle)
+        handle.parent = nerf
+        handle.matrix_parent_inverse = Matrix.Identity(4)
+        handle.location = centroid.tolist()  # surface's local frame is the NeRF's frame
+
+        group = _add_to_group(surface, f"NeRF Handle {handle.name}", vertices)
+        s = handle.nerf_deform
+        s.role, s.nerf, s.region = "HANDLE", nerf, group.name
+        context.view_layer.update()
+        s.rest_matrix = [x for row in _matrix_in_nerf(nerf, handle) for x in row]
+
+        # Ready to grab: the handle is the active, selected object with its gizmos.
+        for obj in context.selected_objects:
+            obj.select_set(False)
+        handle.select_set(True)
+        context.view_layer.objects.active = handle
+        self.report({"INFO"}, f"{handle.name} moves {len(vertices)} vertices")
+        return {"FINISHED"}
+
+
+class NERFDEFORM_OT_pin_selection(bpy.types.Operator):
+    """Pin the selected vertices of the extracted mesh: they stay where they are"""
+
+    bl_idname = "nerf_deform.pin_selection"
+    bl_label = "Pin Selection"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        surface, nerf = _surface_of(context)
+        if surface is None or surface.mode != "EDIT":
+            cls.poll_message_set("Select vertices of a NeRF's extracted mesh in Edit Mode")
+            return False
+        return nerf is not None
+
+    def execute(self, context):
+        surface, nerf = _surface_of(context)
+        vertices = selected_vertices(surface)
+        if len(vertices) == 0:
+            self.report({"ERROR"}, "No vertices selected: select the region to pin on the extracted mesh in Edit Mode")
+            return {"CANCELLED"}
+        if (other := _overlaps(surface, nerf, vertices, skip_group=PIN_GROUP)) is not None:
+            self.report({"ERROR"}, f"The selection overlaps {other}: a vertex cannot be both pinned and moved")
+            return {"CANCELLED"}
+        _add_to_group(surface, PIN_GROUP, vertices)
+        self.report({"INFO"}, f"Pinned {len(vertices)} vertices")
+        return {"FINISHED"}
+
+
+class NERFDEFORM_OT_remove_handle(bpy.types.Operator):
+    """Remove the active handle and its region"""
+
+    bl_idname = "nerf_deform.remove_handle"
+    bl_label = "Remove Handle"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.nerf_deform.role == "HANDLE"
+
+    def execute(self, context):
+        handle = context.active_object
+        nerf = handle.nerf_deform.nerf
+        surface = nerf.nerf_deform.surface if nerf is not None else None
+        if surface is not None and (group := surface.vertex_groups.get(handle.nerf_deform.region)) is not None:
+            surface.vertex_groups.remove(group)
+        name = handle.name
+        bpy.data.objects.remove(handle)
+        self.report({"INFO"}, f"Removed {name}")
+        return {"FINISHED"}
+
+
+class NERFDEFORM_OT_reset_pose(bpy.types.Operator):
+    """Move every handle of the active NeRF back to where it was made"""
+
+    bl_idname = "nerf_deform.reset_pose"
+    bl_label = "Reset Pose"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return owning_nerf(context.active_object) is not None
+
+    def execute(self, context):
+        nerf = owning_nerf(context.active_object)
+        handles = handles_of(nerf)
+        for handle in handles:
+            rest = Matrix(np.reshape(handle.nerf_deform.rest_matrix, (4, 4)).tolist())
+            handle.matrix_world = nerf.matrix_world @ rest
+        self.report({"INFO"}, f"Reset {len(handles)} handles of {nerf.name}")
+        return {"FINISHED"}
+
+
+_classes = (NERFDEFORM_OT_add_handle, NERFDEFORM_OT_pin_selection, NERFDEFORM_OT_remove_handle, NERFDEFORM_OT_reset_pose)
+register, unregister = bpy.utils.register_classes_factory(_classes)
