@@ -83,7 +83,7 @@ def _check_marker(out, meta_check=None, tolerance=0.15):
 CAMERA_CASES = {
     # name: (tool options, check on the written intrinsics)
     "landscape": (dict(resolution=(64, 48)), None),
-    "portrait_auto_fit": (dict(resolution=(40, 60)), None),
+    "portrait_auto_fit": (dict(resolution=(40, 60), target=(0.2, -0.1, 0.15), layout="random"), None),
     "vertical_fit_shift": (dict(resolution=(64, 40), sensor_fit="VERTICAL", sensor_height=20.0, shift=(0.07, -0.05)),
                            None),
     "pixel_aspect": (dict(resolution=(48, 48), pixel_aspect=1.5, lens=40.0, shift=(-0.04, 0.03)), None),
@@ -100,6 +100,20 @@ def test_written_cameras_project_the_marker_where_blender_drew_it(blender, tmp_p
                  threads=2, **options)
     meta, errors = _check_marker(tmp_path)
     assert len(meta["frames"]) == 6
+
+
+def test_renders_the_requested_frame_and_restores_the_current_one(blender, tmp_path):
+    from tools.make_dataset import make_dataset
+
+    sphere = _marker_scene(blender)
+    scene = blender.context.scene
+    for frame, location in ((1, (-0.5, 0.5, -0.4)), (5, MARKER)):
+        sphere.location = location
+        sphere.keyframe_insert("location", frame=frame)
+    scene.frame_set(1)
+    make_dataset(tmp_path, blend=None, progress=None, count=3, resolution=(48, 40), samples=64, frame=5, threads=2)
+    _check_marker(tmp_path)  # the marker is where frame 5 puts it
+    assert scene.frame_current == 1 and tuple(sphere.location) == pytest.approx((-0.5, 0.5, -0.4))
 
 
 def test_camera_angle_x_alone_gives_the_same_rays(blender, tmp_path):

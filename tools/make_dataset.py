@@ -21,7 +21,7 @@ Why Cycles on the CPU: it needs no GPU or display. With the bpy module headless
 (Blender 5.0.1, no GPU), Workbench renders through a software EGL context
 (with EGL errors printed) and EEVEE spends ~30 s compiling shaders for one
 64x48 view, while Cycles renders such a view in a few milliseconds to a tenth
-of a second and gives identical results on any machine.
+of a second and is deterministic for a given --seed.
 
 What is written (the NeRF-synthetic / instant-ngp form, read by the engine):
 
@@ -104,6 +104,7 @@ class Options:
     pixel_aspect: float = 1.0  # pixel width / pixel height (Blender's pixel_aspect_x / pixel_aspect_y)
     view_transform: str = "Standard"  # colour management view; "KEEP" keeps the .blend's
     threads: int = 0  # 0: all cores (Blender's AUTO)
+    frame: int | None = None  # scene frame to render (None: the .blend's current frame)
     frame_prefix: str = "r_"
     extras: dict = field(default_factory=dict)  # free-form, copied into transforms.json's generator
 
@@ -132,6 +133,8 @@ class Options:
             raise DatasetError(f"--sensor-fit must be one of {', '.join(SENSOR_FITS)}, got {self.sensor_fit!r}")
         if self.layout not in ("spiral", "random"):
             raise DatasetError(f"--layout must be spiral or random, got {self.layout!r}")
+        if self.frame is not None and not isinstance(self.frame, int):
+            raise DatasetError(f"--frame must be a whole number, got {self.frame!r}")
         if not isinstance(self.threads, int) or self.threads < 0:
             raise DatasetError(f"--threads must be a whole number >= 0 (0: all cores), got {self.threads!r}")
         if not self.frame_prefix or any(c in self.frame_prefix for c in "/\\"):
@@ -296,6 +299,13 @@ def _configure_render(scene, opts: Options) -> None:
     render.resolution_percentage = 100
     render.pixel_aspect_x, render.pixel_aspect_y = (opts.pixel_aspect, 1.0) if opts.pixel_aspect >= 1 else (1.0, 1.0 / opts.pixel_aspect)
     render.use_border = False
+    # The dataset is the film itself: no compositor or sequencer strips (they may drop alpha
+    # or change the look), no stereo views, no motion blur, only the active view layer.
+    render.use_compositing = False
+    render.use_sequencer = False
+    render.use_multiview = False
+    render.use_motion_blur = False
+    render.use_single_layer = True
     render.use_persistent_data = True  # keep the BVH between views: only the camera moves
     render.threads_mode = "AUTO" if opts.threads == 0 else "FIXED"
     if opts.threads:
@@ -321,6 +331,8 @@ def _render_settings_to_restore(scene):
     pairs = [(scene, "camera")]
     pairs += [(r, n) for n in ("engine", "film_transparent", "resolution_x", "resolution_y", "resolution_percentage",
                               "pixel_aspect_x", "pixel_aspect_y", "use_border", "use_persistent_data",
+                              "use_compositing", "use_sequencer", "use_multiview", "use_motion_blur",
+                              "use_single_layer",
                               "threads_mode", "threads")]
     if c is not None:
         pairs += [(c, n) for n in ("device", "samples", "use_denoising", "seed", "pixel_filter_type", "filter_width")]
@@ -411,6 +423,17 @@ def make_dataset(out, blend=None, progress=print, quiet: bool = True, **options)
     if blend is not None:
         _open_blend(bpy, blend)
     scene = bpy.context.scene
+    previous_frame = scene.frame_current
+    if opts.frame is not None:
+        scene.frame_set(opts.frame)
+    try:
+        return _make(bpy, scene, out, blend, opts, progress, quiet, started)
+    finally:
+        if blend is None and opts.frame is not None:
+            scene.frame_set(previous_frame)
+
+
+def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, started: float) -> dict:
     objects = _renderable_objects(scene)
     where = f"{blend}" if blend is not None else "the loaded scene"
     if not objects:
@@ -527,6 +550,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pixel width / pixel height (default 1)")
     p.add_argument("--view-transform", default=d.view_transform,
                    help="colour management view transform (default Standard; KEEP: the .blend's own)")
+    p.add_argument("--frame", type=int, default=None, help="scene frame to render (default: the .blend's current)")
     p.add_argument("--threads", type=int, default=d.threads, help="render threads (default 0: all cores)")
     p.add_argument("--verbose", action="store_true", help="let Blender print its own render messages")
     return p
@@ -546,7 +570,8 @@ def main(argv=None) -> int:
             hemisphere=args.hemisphere, layout=args.layout, samples=args.samples, denoise=args.denoise,
             test_count=args.test_count, lens=args.lens, sensor_width=args.sensor_width,
             sensor_height=args.sensor_height, sensor_fit=args.sensor_fit, shift=tuple(args.shift),
-            pixel_aspect=args.pixel_aspect, view_transform=args.view_transform, threads=args.threads)
+            pixel_aspect=args.pixel_aspect, view_transform=args.view_transform, threads=args.threads,
+            frame=args.frame)
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
