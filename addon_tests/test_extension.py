@@ -32,9 +32,17 @@ def _engine_ids(bpy):
         return False
 
 
+STANDARD_PANELS = ("RENDER_PT_format", "RENDER_PT_frame_range", "RENDER_PT_output", "DATA_PT_lens", "RENDER_PT_color_management")
+
+
+def _panels_show_engine(bpy):
+    return [name for name in STANDARD_PANELS if "NERF_DEFORM" in getattr(bpy.types, name).COMPAT_ENGINES]
+
+
 def _nothing_registered(bpy):
     return (
         not any(hasattr(bpy.types, name) for name in REGISTERED_TYPES)
+        and not _panels_show_engine(bpy)
         and not _engine_ids(bpy)
         and not any(key.endswith("blender_nerf_deform") for key in bpy.context.preferences.addons.keys())
     )
@@ -86,6 +94,7 @@ def test_installed_extension_enables_as_bl_ext_module(installed):
     for name in REGISTERED_TYPES:
         assert hasattr(bpy.types, name), name
     assert _engine_ids(bpy)
+    assert _panels_show_engine(bpy) == list(STANDARD_PANELS)
     prefs = bpy.context.preferences.addons[EXT_MODULE].preferences
     assert type(prefs).__name__ == "NERFDEFORM_AddonPreferences"
     assert prefs.worker_python == ""

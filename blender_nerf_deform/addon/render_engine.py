@@ -26,5 +26,41 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
         self.report({"WARNING"}, "NeRF Deform: rendering is not implemented yet")
 
 
+# Blender's own properties panels that make sense for this engine: output format,
+# frame range, output path, camera lens, colour management, mesh, object and
+# view layer. Panels list the engines they show for in COMPAT_ENGINES, and
+# external engines add themselves there (properties_output.py says so).
+_PANEL_MODULES = (
+    "bl_ui.properties_output",
+    "bl_ui.properties_data_camera",
+    "bl_ui.properties_data_mesh",
+    "bl_ui.properties_object",
+    "bl_ui.properties_view_layer",
+)
+_PANEL_PREFIXES = {"bl_ui.properties_render": "RENDER_PT_color_management"}
+
+
+def compatible_panels():
+    for panel in bpy.types.Panel.__subclasses__():
+        engines = getattr(panel, "COMPAT_ENGINES", None)
+        if engines is None or "BLENDER_RENDER" not in engines:
+            continue
+        module = panel.__module__
+        if module in _PANEL_MODULES or panel.__name__.startswith(_PANEL_PREFIXES.get(module, "\0")):
+            yield panel
+
+
 _classes = (NERFDEFORM_RenderEngine,)
-register, unregister = bpy.utils.register_classes_factory(_classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
+
+
+def register():
+    _register_classes()
+    for panel in compatible_panels():
+        panel.COMPAT_ENGINES.add(NERFDEFORM_RenderEngine.bl_idname)
+
+
+def unregister():
+    for panel in compatible_panels():
+        panel.COMPAT_ENGINES.discard(NERFDEFORM_RenderEngine.bl_idname)
+    _unregister_classes()
