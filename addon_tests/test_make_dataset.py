@@ -330,3 +330,23 @@ def test_factory_caches_and_honours_its_arguments(make_procedural_dataset, proce
     assert (meta["w"], meta["h"], len(meta["frames"])) == (20, 20, 3)
     assert not (small / "test").exists()
     assert all(np.array(f["transform_matrix"])[2, 3] > 0 for f in meta["frames"])  # upper hemisphere
+
+
+def test_out_must_be_a_folder(default_scene_blend, tmp_path):
+    a_file = tmp_path / "taken"
+    a_file.write_text("mine\n")
+    line = _error_line(run_tool("make_dataset.py", "--blend", default_scene_blend, "--out", a_file, check=False))
+    assert str(a_file) in line and "not a folder" in line
+    assert a_file.read_text() == "mine\n"
+
+
+def test_rerun_replaces_the_dataset(blender, tmp_path):
+    from tools.make_dataset import make_dataset
+
+    _marker_scene(blender)
+    make_dataset(tmp_path, blend=None, progress=None, count=3, resolution=16, samples=1, test_count=2, threads=2)
+    make_dataset(tmp_path, blend=None, progress=None, count=2, resolution=20, samples=1, threads=2)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    assert (meta["w"], len(meta["frames"])) == (20, 2)
+    assert all(Image.open(tmp_path / f["file_path"]).size == (20, 20) for f in meta["frames"])
+    assert not (tmp_path / "test" / "transforms.json").exists()  # no stale split describing old views

@@ -378,9 +378,16 @@ def _render_views(bpy, scene, cam_obj, positions, target, out_dir: Path, opts: O
         final = images / name
         partial = images / f".{name}.partial.png"
         started = time.perf_counter()
-        with _quiet_stdout(quiet):
-            bpy.ops.render.render(write_still=False)
-            bpy.data.images["Render Result"].save_render(filepath=str(partial), scene=scene)
+        try:
+            with _quiet_stdout(quiet):
+                bpy.ops.render.render(write_still=False)
+                bpy.data.images["Render Result"].save_render(filepath=str(partial), scene=scene)
+        except RuntimeError as exc:
+            with contextlib.suppress(FileNotFoundError):
+                partial.unlink()
+            lines = [line for line in str(exc).strip().splitlines() if line.strip()]
+            raise DatasetError(f"Blender failed to render view {k} ({final}): "
+                               f"{lines[-1] if lines else 'unknown error'}") from exc
         if not partial.is_file():
             raise DatasetError(f"Blender rendered view {k} but wrote no image to {partial}")
         os.replace(partial, final)
@@ -452,6 +459,11 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
                      f"(objects reach {extent:.3g} from the target)")
 
     out.mkdir(parents=True, exist_ok=True)
+    # A folder being re-rendered must not keep describing the old views while its images change:
+    # the old transforms.json goes first, the new one is written (atomically) once every view is done.
+    for stale in (out / "transforms.json", out / "test" / "transforms.json"):
+        with contextlib.suppress(FileNotFoundError):
+            stale.unlink()
     cam_data = bpy.data.cameras.new(CAMERA_NAME)
     cam_obj = bpy.data.objects.new(CAMERA_NAME, cam_data)
     scene.collection.objects.link(cam_obj)
