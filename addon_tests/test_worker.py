@@ -129,3 +129,13 @@ def test_missing_worker_python_names_the_path(tmp_path):
     missing = tmp_path / "nope" / "python"
     with pytest.raises(WorkerError, match=f"{missing} does not exist"):
         WorkerClient(str(missing)).call("info")
+
+
+def test_load_of_a_missing_checkpoint_names_the_path(worker, tmp_path):
+    from blender_nerf_deform.addon.worker_client import WorkerError
+
+    assert "load" in worker.ensure_started()["ops"]
+    missing = tmp_path / "runs" / "nerf.ckpt"
+    with pytest.raises(WorkerError, match=f"NeRF checkpoint {missing} does not exist") as info:
+        worker.call("load", {"path": str(missing)})
+    assert info.value.kind == "input"

@@ -4,9 +4,9 @@ Properties, operators, panels and the RenderEngine live here; heavy work is
 sent to the engine in a worker process.
 """
 
-from . import handles, panel, preferences, properties, render_engine
+from . import handles, nerf_ops, panel, preferences, properties, render_engine, worker_client
 
-_modules = (preferences, properties, handles, render_engine, panel)
+_modules = (preferences, properties, nerf_ops, handles, render_engine, panel)
 
 
 def register():
@@ -15,5 +15,6 @@ def register():
 
 
 def unregister():
+    worker_client.shutdown()
     for module in reversed(_modules):
         module.unregister()

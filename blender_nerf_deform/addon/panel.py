@@ -15,6 +15,7 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         nerf = owning_nerf(context.active_object)
+        layout.operator("nerf_deform.load_nerf", icon="FILE_FOLDER")
         if nerf is None:
             layout.label(text="Select a NeRF object, or load one.")
             return

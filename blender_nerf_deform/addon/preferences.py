@@ -25,9 +25,12 @@ class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
         layout.label(text="A Python 3.11 with torch (CPU or CUDA); see the README.")
 
 
-def get(context=None):
+def worker_python(context=None) -> str:
+    """The Worker Python preference ("" when unset, or when the add-on was imported
+    directly rather than enabled, so it has no preferences)."""
     context = context or bpy.context
-    return context.preferences.addons[ADDON_PACKAGE].preferences
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
+    return addon.preferences.worker_python if addon is not None else ""
 
 
 _classes = (NERFDEFORM_AddonPreferences,)

@@ -37,6 +37,7 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
     checkpoint: StringProperty(
         name="Checkpoint", subtype="FILE_PATH", description="NeRF checkpoint (nerf.ckpt), relative to the .blend when saved"
     )
+    aabb: FloatVectorProperty(name="Bounds", size=6, description="NeRF's scene box in its own frame: min x y z, max x y z")
     deformation_mode: EnumProperty(name="Deformation", items=DEFORMATION_MODES, default="ARAP")
     surface: PointerProperty(name="Surface", type=bpy.types.Object, description="Extracted mesh of this NeRF")
     cage: PointerProperty(name="Cage", type=bpy.types.Object, description="Tetrahedral cage of this NeRF")

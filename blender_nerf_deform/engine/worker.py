@@ -182,6 +182,8 @@ def main() -> int:
             },
         )
         return 3
+    from . import worker_ops  # noqa: F401  (registers the engine's ops)
+
     worker = Worker(inp, out)
     worker.send(
         {
@@ -197,4 +199,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run as `python -m`, this file is `__main__`; ops register in the package's
+    # own instance of it (worker_ops imports it by name), so run that one.
+    from . import worker as _package_instance
+
+    sys.exit(_package_instance.main())
