@@ -72,6 +72,9 @@ from pathlib import Path
 
 import numpy as np
 
+# The add-on's camera model lives in the package at the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 RENDERABLE_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "VOLUME", "POINTCLOUD", "CURVES", "GREASEPENCIL"}
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
@@ -166,31 +169,18 @@ def camera_positions(count: int, radius: float, target=(0.0, 0.0, 0.0), hemisphe
     return np.asarray(target, dtype=np.float64) + radius * unit
 
 
-def intrinsics(width: int, height: int, lens: float, sensor_width: float, sensor_height: float,
-               sensor_fit: str = "AUTO", shift_x: float = 0.0, shift_y: float = 0.0,
-               pixel_aspect_x: float = 1.0, pixel_aspect_y: float = 1.0) -> dict:
-    """fl_x, fl_y, cx, cy (pixels; cy from the top row) of a Blender perspective camera.
+def intrinsics(scene, cam_obj) -> dict:
+    """fl_x, fl_y, cx, cy (pixels; cy from the top row), w, h and fields of view of a Blender camera.
 
-    Follows Blender's viewplane (BKE_camera_params_compute_viewplane; Cycles'
-    blender_camera_viewplane agrees): the sensor size is fitted to the image's
-    wider side (AUTO) or to the side named by the fit; shift is in units of that
-    side; a pixel is pixel_aspect_x wide for pixel_aspect_y high.
+    The add-on's own mapping of a Blender camera (sensor fit, shift, pixel
+    aspect, resolution %) to a pinhole, so datasets and renders share one model.
     """
-    ycor = pixel_aspect_y / pixel_aspect_x
-    if sensor_fit == "AUTO":
-        sensor = sensor_width
-        fit = "HORIZONTAL" if pixel_aspect_x * width >= pixel_aspect_y * height else "VERTICAL"
-    else:
-        sensor = sensor_height if sensor_fit == "VERTICAL" else sensor_width
-        fit = sensor_fit
-    viewfac = float(width) if fit == "HORIZONTAL" else ycor * height  # the fitted side, in x-pixels
-    fl_x = lens * viewfac / sensor
-    fl_y = fl_x / ycor
-    cx = 0.5 * width - shift_x * viewfac
-    cy = 0.5 * height + shift_y * viewfac / ycor
-    return {"fl_x": fl_x, "fl_y": fl_y, "cx": cx, "cy": cy, "w": int(width), "h": int(height),
-            "camera_angle_x": 2.0 * math.atan(0.5 * width / fl_x),
-            "camera_angle_y": 2.0 * math.atan(0.5 * height / fl_y)}
+    from blender_nerf_deform.addon.camera import pinhole_from_blender  # needs bpy loaded
+
+    pin = pinhole_from_blender(scene, cam_obj)
+    return {"fl_x": pin.fx, "fl_y": pin.fy, "cx": pin.cx, "cy": pin.cy, "w": pin.width, "h": pin.height,
+            "camera_angle_x": 2.0 * math.atan(0.5 * pin.width / pin.fx),
+            "camera_angle_y": 2.0 * math.atan(0.5 * pin.height / pin.fy)}
 
 
 def project(points, transform_matrix, fl_x, fl_y, cx, cy) -> np.ndarray:
@@ -482,10 +472,7 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
             scene.camera = cam_obj
             _configure_render(scene, opts)
 
-            r = scene.render
-            intr = intrinsics(r.resolution_x, r.resolution_y, cam_data.lens, cam_data.sensor_width,
-                              cam_data.sensor_height, cam_data.sensor_fit, cam_data.shift_x, cam_data.shift_y,
-                              r.pixel_aspect_x, r.pixel_aspect_y)
+            intr = intrinsics(scene, cam_obj)
             generator = {
                 "tool": "tools/make_dataset.py",
                 "blend": str(blend) if blend is not None else None,
