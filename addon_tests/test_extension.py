@@ -10,6 +10,7 @@ different path, so it is tested too.
 import subprocess
 import sys
 import zipfile
+from pathlib import Path
 
 import pytest
 
@@ -97,6 +98,10 @@ def test_installed_extension_enables_as_bl_ext_module(installed):
     assert _panels_show_engine(bpy) == list(STANDARD_PANELS)
     prefs = bpy.context.preferences.addons[EXT_MODULE].preferences
     assert type(prefs).__name__ == "NERFDEFORM_AddonPreferences"
+    # The worker works in the extension's user folder, never in the extension's own folder.
+    workdir = Path(sys.modules[f"{EXT_MODULE}.addon.worker_client"].worker_directory())
+    assert workdir.is_dir() and repo_dir not in workdir.parents
+    assert Path(bpy.utils.extension_path_user(EXT_MODULE)) in workdir.parents
     assert prefs.worker_python == ""
 
 

@@ -37,6 +37,8 @@ from ..engine.protocol import ProtocolError, read_message, write_message
 # engine from the folder's parent.
 PACKAGE_DIR = Path(__file__).resolve().parent.parent
 WORKER_MODULE = f"{PACKAGE_DIR.name}.engine.worker"
+# This add-on's top-level module (`bl_ext.<repo>.blender_nerf_deform` as an extension).
+PACKAGE_DIR_MODULE = __package__.rpartition(".")[0]
 START_TIMEOUT_S = 120.0
 _STDERR_LINES = 40
 
@@ -59,6 +61,21 @@ class _Request:
     inbox: queue.Queue = field(default_factory=queue.Queue)
     blocking: bool = False
     proc: subprocess.Popen | None = None  # the worker it was sent to
+
+
+def worker_directory() -> str:
+    """The worker's working folder: the extension's user folder (never the extension's own
+    folder, which Blender may replace on update), or a temporary one when not an extension."""
+    import tempfile
+
+    try:
+        import bpy
+
+        return bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, path="worker", create=True)
+    except (ImportError, ValueError, AttributeError):
+        path = os.path.join(tempfile.gettempdir(), "nerf_deform_worker")
+        os.makedirs(path, exist_ok=True)
+        return path
 
 
 def python_has_torch(python: str) -> bool:
@@ -138,7 +155,7 @@ class WorkerClient:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 env=env,
-                cwd=str(PACKAGE_DIR.parent),
+                cwd=worker_directory(),
             )
         except OSError as exc:
             raise WorkerError(f"cannot start worker Python {self.python}: {exc}", "setup") from None
