@@ -1,0 +1,116 @@
+"""Occupancy grid (instant-ngp's density bitfield) for empty-space skipping.
+
+A cubic grid of `resolution`^3 cells over an aabb. `density` holds a running
+(EMA) estimate of each cell's density, `mask` says which cells may hold
+matter. The trainer calls `update(density_fn, step)`; the renderer calls
+`occupied(points)` and `bounds()`. Another stage (ray bending) can build a grid
+for a deformed space with `OccupancyGrid.from_mask(aabb, mask)` and hand it to
+the renderer instead of the model's own.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+class OccupancyGrid:
+    def __init__(self, aabb: torch.Tensor, resolution: int = 128):
+        self.aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3).clone()
+        self.resolution = int(resolution)
+        n = self.resolution**3
+        self.density = torch.zeros(n, dtype=torch.float32, device=self.aabb.device)
+        # Everything may be occupied until the first update says otherwise.
+        self.mask = torch.ones(n, dtype=torch.bool, device=self.aabb.device)
+        self._bounds = None
+
+    @classmethod
+    def from_mask(cls, aabb, mask: torch.Tensor) -> "OccupancyGrid":
+        """A grid given by a boolean (R, R, R) mask indexed [x, y, z] (e.g. for a deformed space)."""
+        mask = torch.as_tensor(mask, dtype=torch.bool)
+        r = mask.shape[0]
+        if mask.shape != (r, r, r):
+            raise ValueError(f"occupancy mask must be cubic (R, R, R), got {tuple(mask.shape)}")
+        grid = cls(torch.as_tensor(aabb, dtype=torch.float32).to(mask.device), r)
+        grid.mask = mask.reshape(-1).clone()
+        grid.density = grid.mask.float()
+        return grid
+
+    def to(self, device) -> "OccupancyGrid":
+        self.aabb = self.aabb.to(device)
+        self.density = self.density.to(device)
+        self.mask = self.mask.to(device)
+        self._bounds = None
+        return self
+
+    @property
+    def cell_size(self) -> torch.Tensor:
+        return (self.aabb[1] - self.aabb[0]) / self.resolution
+
+    def cell_index(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat cell index (x + R y + R^2 z) of points, and whether each point is inside the grid."""
+        r = self.resolution
+        g = ((points - self.aabb[0]) / (self.aabb[1] - self.aabb[0]) * r).floor().long()
+        inside = ((g >= 0) & (g < r)).all(dim=-1)
+        g = g.clamp(0, r - 1)
+        return g[:, 0] + r * g[:, 1] + r * r * g[:, 2], inside
+
+    def occupied(self, points: torch.Tensor) -> torch.Tensor:
+        """Bool (N,): the point lies in an occupied cell (False outside the grid)."""
+        idx, inside = self.cell_index(points)
+        return self.mask[idx] & inside
+
+    def bounds(self) -> torch.Tensor:
+        """(2, 3) world box around the occupied cells (the whole aabb when none is occupied)."""
+        if self._bounds is None:
+            r = self.resolution
+            occ = self.mask.reshape(r, r, r)  # [z, y, x] since flat = x + R y + R^2 z
+            if not bool(occ.any()):
+                self._bounds = self.aabb.clone()
+            else:
+                lo, hi = [], []
+                per_axis = (occ.any(dim=0).any(dim=0), occ.any(dim=0).any(dim=1), occ.any(dim=2).any(dim=1))
+                for along in per_axis:  # x, y, z
+                    nz = torch.nonzero(along).flatten()
+                    lo.append(int(nz.min()))
+                    hi.append(int(nz.max()) + 1)
+                lo = torch.tensor(lo, device=self.aabb.device, dtype=torch.float32)
+                hi = torch.tensor(hi, device=self.aabb.device, dtype=torch.float32)
+                self._bounds = torch.stack([self.aabb[0] + lo * self.cell_size, self.aabb[0] + hi * self.cell_size])
+        return self._bounds
+
+    def any(self) -> bool:
+        return bool(self.mask.any())
+
+    def cell_centers(self, idx: torch.Tensor, jitter: bool = True) -> torch.Tensor:
+        r = self.resolution
+        xyz = torch.stack([idx % r, (idx // r) % r, idx // (r * r)], dim=-1).float()
+        off = torch.rand_like(xyz) if jitter else torch.full_like(xyz, 0.5)
+        return self.aabb[0] + (xyz + off) * self.cell_size
+
+    @torch.no_grad()
+    def update(self, density_fn, step_size: float, threshold: float = 0.01, decay: float = 0.95,
+               n_uniform: int | None = None, n_occupied: int | None = None, chunk: int = 1 << 16) -> None:
+        """instant-ngp's update: re-sample some cells, EMA-max their density, re-threshold.
+
+        `n_uniform` random cells plus `n_occupied` random currently-occupied cells
+        are evaluated at a jittered point (all cells when both are None). A cell
+        is occupied when `density * step_size` exceeds min(threshold, mean).
+        """
+        n = self.resolution**3
+        dev = self.density.device
+        if n_uniform is None and n_occupied is None:
+            idx = torch.arange(n, device=dev)
+        else:
+            parts = [torch.randint(0, n, (n_uniform or 0,), device=dev)]
+            occ_idx = torch.nonzero(self.mask).flatten()
+            if n_occupied and occ_idx.numel():
+                parts.append(occ_idx[torch.randint(0, occ_idx.numel(), (n_occupied,), device=dev)])
+            idx = torch.cat(parts)
+        new = torch.empty(idx.shape[0], device=dev)
+        for s in range(0, idx.shape[0], chunk):
+            new[s: s + chunk] = density_fn(self.cell_centers(idx[s: s + chunk]))
+        self.density[idx] = torch.maximum(self.density[idx] * decay, new)
+        opacity = self.density * step_size
+        thresh = min(threshold, float(opacity.mean()))
+        self.mask = opacity > thresh
+        self._bounds = None
