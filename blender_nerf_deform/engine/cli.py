@@ -43,11 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-seconds", type=float, metavar="S", help="stop training after S seconds")
     p.add_argument("--steps", type=int, metavar="N", help="stop training after N steps")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
+    p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/nerf.ckpt when it exists")
+    p.add_argument("--checkpoint-every", type=float, default=120.0, metavar="S", help="rewrite the checkpoint every S seconds (default 120)")
     p.set_defaults(handler=_stage("train", issue=3))
 
     p = sub.add_parser("eval", help="print PSNR of a checkpoint over a dataset's frames")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_stage("evaluate", issue=3))
 
     p = sub.add_parser("render", help="render frames of a NeRF, optionally ray-bent by a deformed cage")
@@ -56,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<name>.png (RGBA, straight alpha) per frame")
     p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
     p.add_argument("--deformed", metavar="V.npy", help="(N,3) deformed positions of the cage's vertices")
+    p.add_argument("--downscale", type=int, default=1, metavar="K", help="render at 1/K of the cameras' resolution")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_stage("render_cli", issue=3))
 
     p = sub.add_parser("extract", help="extract a filtered surface mesh from a NeRF's density")

@@ -69,16 +69,43 @@ if HAVE_NUMBA:
                     tx = fx - bx
                     ty = fy - by
                     tz = fz - bz
-                    for f in range(nf):
-                        out[i, lvl * nf + f] = 0.0
-                    for c in range(8):
-                        ox = c & 1
-                        oy = (c >> 1) & 1
-                        oz = (c >> 2) & 1
-                        w = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
-                        row = _row(bx + ox, by + oy, bz + oz, res, dense, size, off)
+                    if nf <= 4:
+                        # Accumulate in registers (out may alias table as far as numba knows).
+                        a0 = np.float32(0.0)
+                        a1 = np.float32(0.0)
+                        a2 = np.float32(0.0)
+                        a3 = np.float32(0.0)
+                        for c in range(8):
+                            ox = c & 1
+                            oy = (c >> 1) & 1
+                            oz = (c >> 2) & 1
+                            w = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                            row = _row(bx + ox, by + oy, bz + oz, res, dense, size, off)
+                            a0 += w * table[row, 0]
+                            if nf > 1:
+                                a1 += w * table[row, 1]
+                            if nf > 2:
+                                a2 += w * table[row, 2]
+                            if nf > 3:
+                                a3 += w * table[row, 3]
+                        out[i, lvl * nf] = a0
+                        if nf > 1:
+                            out[i, lvl * nf + 1] = a1
+                        if nf > 2:
+                            out[i, lvl * nf + 2] = a2
+                        if nf > 3:
+                            out[i, lvl * nf + 3] = a3
+                    else:
                         for f in range(nf):
-                            out[i, lvl * nf + f] += w * table[row, f]
+                            out[i, lvl * nf + f] = 0.0
+                        for c in range(8):
+                            ox = c & 1
+                            oy = (c >> 1) & 1
+                            oz = (c >> 2) & 1
+                            w = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                            row = _row(bx + ox, by + oy, bz + oz, res, dense, size, off)
+                            for f in range(nf):
+                                out[i, lvl * nf + f] += w * table[row, f]
 
     @njit(parallel=True, cache=True, fastmath=True)
     def _hash_backward(x, grad_out, res_arr, dense_arr, size_arr, off_arr, grad_table, touched):
@@ -128,6 +155,58 @@ if HAVE_NUMBA:
                 param[r, f] -= lr * (mm / bc1) / (np.sqrt(vv / bc2) + eps)
 
 
+    @njit(parallel=True, cache=True, fastmath=True)
+    def _march_count(o, d, t0, t1, u, step, lo, scale, r, mask, counts):
+        for ray in prange(o.shape[0]):
+            n = 0
+            k_max = int(np.ceil((t1[ray] - t0[ray]) / step))
+            for k in range(k_max):
+                t = t0[ray] + (k + u[ray]) * step
+                if t >= t1[ray]:
+                    break
+                ix = min(max(int((o[ray, 0] + d[ray, 0] * t - lo[0]) * scale[0]), 0), r - 1)
+                iy = min(max(int((o[ray, 1] + d[ray, 1] * t - lo[1]) * scale[1]), 0), r - 1)
+                iz = min(max(int((o[ray, 2] + d[ray, 2] * t - lo[2]) * scale[2]), 0), r - 1)
+                if mask[ix + r * iy + r * r * iz]:
+                    n += 1
+            counts[ray] = n
+
+    @njit(parallel=True, cache=True, fastmath=True)
+    def _march_fill(o, d, t0, t1, u, step, lo, scale, r, mask, starts, rays, ray_idx, ts):
+        for ray in prange(o.shape[0]):
+            n = starts[ray]
+            k_max = int(np.ceil((t1[ray] - t0[ray]) / step))
+            for k in range(k_max):
+                t = t0[ray] + (k + u[ray]) * step
+                if t >= t1[ray]:
+                    break
+                ix = min(max(int((o[ray, 0] + d[ray, 0] * t - lo[0]) * scale[0]), 0), r - 1)
+                iy = min(max(int((o[ray, 1] + d[ray, 1] * t - lo[1]) * scale[1]), 0), r - 1)
+                iz = min(max(int((o[ray, 2] + d[ray, 2] * t - lo[2]) * scale[2]), 0), r - 1)
+                if mask[ix + r * iy + r * r * iz]:
+                    ray_idx[n] = rays[ray]
+                    ts[n] = t
+                    n += 1
+
+
+def march_cpu(o, d, t0, t1, u, step, occupancy, rays):
+    """Samples in occupied cells, as renderer.march: (ray index, t), sorted by ray then t."""
+    on, dn = o.contiguous().numpy(), d.contiguous().numpy()
+    t0n, t1n, un = t0.contiguous().numpy(), t1.contiguous().numpy(), u.contiguous().numpy()
+    lo = occupancy.aabb[0].numpy().astype(np.float32)
+    scale = (occupancy.resolution / (occupancy.aabb[1] - occupancy.aabb[0])).numpy().astype(np.float32)
+    mask = occupancy.mask.numpy().view(np.uint8)
+    counts = np.empty(on.shape[0], np.int64)
+    _march_count(on, dn, t0n, t1n, un, np.float32(step), lo, scale, occupancy.resolution, mask, counts)
+    starts = np.cumsum(counts) - counts
+    total = int(counts.sum())
+    ray_idx = np.empty(total, np.int64)
+    ts = np.empty(total, np.float32)
+    _march_fill(on, dn, t0n, t1n, un, np.float32(step), lo, scale, occupancy.resolution, mask, starts,
+                rays.numpy(), ray_idx, ts)
+    return torch.from_numpy(ray_idx), torch.from_numpy(ts)
+
+
 def kernels_apply(x: torch.Tensor, table: torch.Tensor) -> bool:
     """Whether the fused CPU kernels can run these tensors (CPU float32, positions without grad)."""
     return (HAVE_NUMBA and x.device.type == "cpu" and table.device.type == "cpu"
@@ -142,6 +221,22 @@ class _LevelArrays:
         self.dense = np.asarray(enc.dense_levels, dtype=np.bool_)
         self.size = np.asarray(enc.level_sizes, dtype=np.int64)
         self.off = np.cumsum([0] + list(enc.level_sizes[:-1])).astype(np.int64)
+
+
+class HashReuseCPU(torch.autograd.Function):
+    """Identity on an encoding already computed (without grad) for positions x; backward = the table's
+    gradient, as HashEncodeCPU. Lets training reuse the encoding of its density-only first pass."""
+
+    @staticmethod
+    def forward(ctx, encoded, x, table, enc):
+        ctx.save_for_backward(x)
+        ctx.enc = enc
+        return encoded.clone() if encoded.requires_grad else encoded
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        _, g, _ = HashEncodeCPU.backward(ctx, grad_out)
+        return None, None, g, None
 
 
 class HashEncodeCPU(torch.autograd.Function):

@@ -146,6 +146,16 @@ class HashEncoding(torch.nn.Module):
                 return out
         return self.torch_forward(x)
 
+    def reuse(self, encoded: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """The encoding of x, given `encoded` = self(x) computed without gradients: on the CPU kernel path
+        it is reused (only the backward runs); elsewhere it is recomputed with autograd."""
+        if self.use_kernels:
+            from .cpu_kernels import HashReuseCPU, kernels_apply
+
+            if kernels_apply(x, self.table):
+                return HashReuseCPU.apply(encoded, x, self.table, self)
+        return self(x)
+
     def torch_forward(self, x: torch.Tensor) -> torch.Tensor:
         """The torch formulation (CUDA, and CPU without numba): one embedding_bag over all levels x corners."""
         n = x.shape[0]

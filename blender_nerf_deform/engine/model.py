@@ -124,13 +124,21 @@ class NerfModel(torch.nn.Module):
     def normalize(self, points: torch.Tensor) -> torch.Tensor:
         return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
 
-    def density_and_features(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Density (N,) >= 0 and the geometry features (N, 1+geo_feat_dim) the colour MLP reads."""
+    def encode(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Hash encoding (N, L*F) of world points, whether each is inside the aabb, and the normalised points."""
         x = self.normalize(points)
         inside = ((x >= 0) & (x <= 1)).all(dim=-1)
-        h = self.density_net(self.encoding(x))
+        return self.encoding(x), inside, x
+
+    def features_from_encoding(self, encoded: torch.Tensor, inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.density_net(encoded)
         sigma = trunc_exp(h[:, 0] - 1.0) * inside
         return sigma, h
+
+    def density_and_features(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density (N,) >= 0 and the geometry features (N, 1+geo_feat_dim) the colour MLP reads."""
+        encoded, inside, _ = self.encode(points)
+        return self.features_from_encoding(encoded, inside)
 
     def color(self, geo: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)

@@ -106,9 +106,15 @@ def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, s
         return empty
     rays = torch.nonzero(hit).flatten()
     t0, t1 = t0[rays], t1[rays]
+    u = torch.rand(rays.shape[0], device=dev) if perturb else torch.full((rays.shape[0],), 0.5, device=dev)
+    from .cpu_kernels import HAVE_NUMBA
+
+    if HAVE_NUMBA and dev.type == "cpu" and occupancy.mask.device.type == "cpu":
+        from .cpu_kernels import march_cpu
+
+        return march_cpu(origins[rays], dirs[rays], t0, t1, u, step, occupancy, rays)
     k_max = int(math.ceil(float((t1 - t0).max()) / step))
-    u = torch.rand(rays.shape[0], 1, device=dev) if perturb else torch.full((rays.shape[0], 1), 0.5, device=dev)
-    t = t0[:, None] + (torch.arange(k_max, device=dev, dtype=torch.float32)[None, :] + u) * step  # (R, K)
+    t = t0[:, None] + (torch.arange(k_max, device=dev, dtype=torch.float32)[None, :] + u[:, None]) * step  # (R, K)
     valid = t < t1[:, None]
     pts = origins[rays][:, None, :] + dirs[rays][:, None, :] * t[..., None]
     valid &= occupancy.occupied(pts.reshape(-1, 3)).reshape(valid.shape)
@@ -130,15 +136,22 @@ def _segment_sum(values: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> to
     return out.index_add(0, ray_idx, values)
 
 
-def _density_pass(model, pts, chunk=1 << 18):
-    sig, geo = [], []
+def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
+    """Density and geometry features of all samples (no grad); with keep_encoding also the encodings."""
+    sig, geo, encs, xs = [], [], [], []
     for s in range(0, pts.shape[0], chunk):
-        a, b = model.density_and_features(pts[s: s + chunk])
+        enc, inside, x = model.encode(pts[s: s + chunk])
+        a, b = model.features_from_encoding(enc, inside)
         sig.append(a)
         geo.append(b)
+        if keep_encoding:
+            encs.append(enc)
+            xs.append(x)
     if not sig:
-        return pts.new_zeros(0), pts.new_zeros(0, model.config.geo_feat_dim + 1)
-    return torch.cat(sig), torch.cat(geo)
+        z = pts.new_zeros(0)
+        return z, pts.new_zeros(0, model.config.geo_feat_dim + 1), pts.new_zeros(0, model.encoding.out_dim), pts.new_zeros(0, 3)
+    cat = torch.cat
+    return cat(sig), cat(geo), (cat(encs) if keep_encoding else None), (cat(xs) if keep_encoding else None)
 
 
 def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad):
@@ -151,14 +164,18 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
         pts, sdirs, keep = sample_transform(pts, sdirs)
     n_density = ray_idx.numel()
     with torch.no_grad():
-        sigma, geo = _density_pass(model, pts)
+        sigma, geo, enc, xn = _density_pass(model, pts, keep_encoding=grad)
         if keep is not None:
             sigma = sigma * keep
         trans = _exclusive_transmittance(sigma * step, ray_idx, n)
     if grad:
+        # Second pass with autograd on the samples that can still be seen; the encoding of the
+        # first pass is reused (only its backward runs) where the CPU kernels apply.
         sel = torch.nonzero((trans > early_stop_eps) & (sigma > 0)).flatten()
-        ray_idx, t, pts, sdirs = ray_idx[sel], t[sel], pts[sel], sdirs[sel]
-        sigma, geo = model.density_and_features(pts)
+        ray_idx, t, sdirs = ray_idx[sel], t[sel], sdirs[sel]
+        xs = xn[sel]
+        inside = ((xs >= 0) & (xs <= 1)).all(dim=-1)
+        sigma, geo = model.features_from_encoding(model.encoding.reuse(enc[sel], xs), inside)
         if keep is not None:
             sigma = sigma * keep[sel]
         rgb = model.color(geo, sdirs)

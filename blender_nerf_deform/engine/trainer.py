@@ -79,7 +79,8 @@ class Trainer:
             self.table_v = torch.zeros_like(enc.table.detach())
         self.step_count = 0
         self.elapsed = 0.0  # training seconds (callbacks excluded)
-        self.n_rays = self.opt.init_rays
+        # First batch: as if every ray took half a diagonal of samples (the grid starts all occupied).
+        self.n_rays = max(64, min(self.opt.init_rays, 2 * self.opt.target_samples // model.config.steps_per_diagonal))
         self.last = {}
 
     # --- pieces of a step ---------------------------------------------------------------------
@@ -122,7 +123,9 @@ class Trainer:
         was = m.training
         m.eval()
         if self.step_count < self.opt.occ_warmup_steps:
-            m.occupancy.update(m.density, step, m.config.occ_threshold)
+            # Every cell, but through blocks of 2^3 cells for the first half of the warmup (8x cheaper).
+            block = 2 if self.step_count < self.opt.occ_warmup_steps // 2 else 1
+            m.occupancy.update(m.density, step, m.config.occ_threshold, block=block)
         else:
             k = int(m.occupancy.resolution**3 * self.opt.occ_fraction)
             m.occupancy.update(m.density, step, m.config.occ_threshold, n_uniform=k, n_occupied=k)
@@ -163,7 +166,7 @@ class Trainer:
         per_ray = max(n_samples / self.n_rays, 1e-3)
         den_per_ray = max(out["n_density_samples"] / self.n_rays, 1e-3)
         want = min(self.opt.target_samples / per_ray, 4 * self.opt.target_samples / den_per_ray)
-        self.n_rays = int(min(self.opt.max_rays, max(256, 0.7 * self.n_rays + 0.3 * want)))
+        self.n_rays = int(min(self.opt.max_rays, 2 * self.n_rays, max(64, 0.7 * self.n_rays + 0.3 * want)))
         self.step_count += 1
         self.elapsed += time.perf_counter() - t_start
         lv = float(loss.detach())

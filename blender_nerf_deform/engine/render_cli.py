@@ -1,0 +1,76 @@
+"""`render` command: render the cameras of a transforms.json to DIR/<name>.png (RGBA, straight alpha).
+
+    python -m blender_nerf_deform.engine render --nerf CKPT --cameras transforms.json --out DIR
+        [--cage CAGE.npz --deformed V.npy] [--downscale K] [--device D]
+
+<name> is the basename of the frame's file_path without extension. Only the
+cameras are read (images need not exist when `w` and `h` are given). Each PNG
+is written to a temporary file and renamed.
+
+Ray bending (--cage/--deformed) plugs in through `bending_transform`, which must
+return the renderer's `sample_transform` and the deformed-space occupancy grid;
+it lands with the ray-bending issue (5).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .checkpoint import load_nerf
+from .dataset import load_dataset
+from .errors import EngineError
+from .renderer import render_image
+
+
+def bending_transform(model, cage_path, deformed_path):
+    """(sample_transform, occupancy) for rendering through a deformed cage. Hook for issue 5."""
+    raise EngineError("ray bending (--cage/--deformed) is not implemented yet (tracked in issue 5)")
+
+
+def write_png_rgba(path, rgba: np.ndarray) -> None:
+    """Write an (H, W, 4) float straight-alpha image as an 8-bit RGBA PNG, atomically."""
+    from PIL import Image
+
+    path = Path(path)
+    arr = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.png", dir=path.parent)
+    os.close(fd)
+    try:
+        Image.fromarray(arr, mode="RGBA").save(tmp, format="PNG")
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def main(args) -> int:
+    if (args.cage is None) != (args.deformed is None):
+        raise EngineError("--cage and --deformed go together: give both or neither")
+    model = load_nerf(args.nerf, device=getattr(args, "device", "auto") or "auto")
+    cams = load_dataset(args.cameras, downscale=getattr(args, "downscale", 1) or 1, load_images=False)
+    extra = {}
+    if args.cage is not None:
+        transform, occupancy = bending_transform(model, args.cage, args.deformed)
+        extra = {"sample_transform": transform, "occupancy": occupancy}
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise EngineError(f"--out {out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    names = [c.name for c in cams.cameras]
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})[0]
+        raise EngineError(f"{cams.source}: two frames are both named {dup!r}; their PNGs would overwrite each other")
+    from tqdm import tqdm
+
+    for cam in tqdm(cams.cameras, unit="frame", dynamic_ncols=True):
+        result = render_image(model, cam, **extra)
+        write_png_rgba(out / f"{cam.name}.png", result["rgba"])
+    print(f"wrote {len(cams)} frames to {out}")
+    return 0

@@ -1,0 +1,123 @@
+#!/usr/bin/env python3
+"""Benchmark: validation PSNR of NeRF training on lego_200 against wall-clock training time.
+
+Validation split: every 10th of the 90 views (r_0, r_18, ...: indices 0, 10, ..., 80) is held
+out; the other 81 train. PSNR is on white, over all held-out views, measured at the
+given training times (the time spent validating is not counted). Also reports the
+render time of one 200x200 validation frame, samples per ray and peak memory (RSS).
+
+    flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench_nerf_train.py \\
+        --data ../shared/datasets/lego_200 --seconds 600 --json /tmp/train.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from blender_nerf_deform.engine.dataset import load_dataset  # noqa: E402
+from blender_nerf_deform.engine.model import NerfConfig, NerfModel  # noqa: E402
+from blender_nerf_deform.engine.renderer import render_image  # noqa: E402
+from blender_nerf_deform.engine.trainer import Trainer, TrainOptions  # noqa: E402
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def evaluate(model, ds) -> dict:
+    psnrs, times, spr, cspr = [], [], [], []
+    for cam, img in zip(ds.cameras, ds.images):
+        t = time.perf_counter()
+        out = render_image(model, cam, background=(1.0, 1.0, 1.0))
+        times.append(time.perf_counter() - t)
+        gt = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
+        psnrs.append(-10.0 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
+        spr.append(out["density_samples_per_ray"])
+        cspr.append(out["color_samples_per_ray"])
+    return {"psnr": float(np.mean(psnrs)), "render_s_median": float(np.median(times)),
+            "density_samples_per_ray": float(np.mean(spr)), "color_samples_per_ray": float(np.mean(cspr))}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="../shared/datasets/lego_200")
+    ap.add_argument("--seconds", type=float, default=600)
+    ap.add_argument("--at", default="60,120,300,600", help="training seconds at which to validate")
+    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--save", help="write the final checkpoint here")
+    ap.add_argument("--log2-table", type=int, default=None)
+    ap.add_argument("--finest", type=int, default=None)
+    ap.add_argument("--occ-res", type=int, default=None)
+    ap.add_argument("--target-samples", type=int, default=None)
+    ap.add_argument("--lr-final", type=float, default=None)
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    ds = load_dataset(args.data)
+    val_idx = list(range(0, len(ds), 10))
+    train = ds.subset([i for i in range(len(ds)) if i % 10])
+    val = ds.subset(val_idx)
+    cfg = NerfConfig(aabb=ds.aabb.reshape(-1).tolist())
+    if args.log2_table:
+        cfg.log2_table_size = args.log2_table
+    if args.finest:
+        cfg.finest_resolution = args.finest
+    if args.occ_res:
+        cfg.occ_resolution = args.occ_res
+    opts = TrainOptions(max_seconds=args.seconds)
+    if args.target_samples:
+        opts.target_samples = args.target_samples
+    if args.lr_final:
+        opts.lr_final_factor = args.lr_final
+    torch.manual_seed(0)
+    model = NerfModel(cfg)
+    trainer = Trainer(model, train, opts)
+    marks = [float(x) for x in args.at.split(",") if float(x) <= args.seconds]
+    results = []
+    rss_before_eval = [0.0]
+
+    def callback(tr: Trainer) -> None:
+        while marks and tr.elapsed >= marks[0]:
+            mark = marks.pop(0)
+            rss_before_eval[0] = peak_rss_mb()
+            r = evaluate(tr.model, val)
+            r.update({"at_s": mark, "train_s": round(tr.elapsed, 1), "step": tr.step_count,
+                      "rays_per_step": tr.last.get("rays"), "train_samples_per_ray": tr.last.get("samples_per_ray"),
+                      "train_density_samples_per_ray": tr.last.get("density_samples_per_ray"),
+                      "occupied_cells": int(tr.model.occupancy.mask.sum())})
+            results.append(r)
+            print(json.dumps(r), flush=True)
+
+    t0 = time.perf_counter()
+    trainer.train(progress=False, callback=callback)
+    wall = time.perf_counter() - t0
+    if marks:  # budget ended between marks: validate the final model at the end
+        callback(trainer)
+    summary = {"config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
+               "results": results, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
+               "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
+               "threads": torch.get_num_threads(), "torch": torch.__version__}
+    print(json.dumps({k: v for k, v in summary.items() if k != "results"}), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1))
+    if args.save:
+        from blender_nerf_deform.engine.checkpoint import save_nerf
+
+        save_nerf(model, args.save)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
