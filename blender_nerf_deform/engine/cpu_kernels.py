@@ -112,7 +112,10 @@ if HAVE_NUMBA:
         n = x.shape[0]
         n_levels = res_arr.shape[0]
         nf = grad_table.shape[1]
-        for lvl in prange(n_levels):
+        # Threads take levels in the order 0, L-1, 1, L-2, ...: prange splits the range in
+        # contiguous parts, and this mixes cheap (dense, coarse) and costly (hashed) levels.
+        for j in prange(n_levels):
+            lvl = j // 2 if j % 2 == 0 else n_levels - 1 - j // 2
             res = res_arr[lvl]
             dense = dense_arr[lvl]
             size = size_arr[lvl]

@@ -3,7 +3,8 @@
 A cubic grid of `resolution`^3 cells over an aabb. `density` holds a running
 (EMA) estimate of each cell's density, `mask` says which cells may hold
 matter. The trainer calls `update(density_fn, step)`; the renderer calls
-`occupied(points)` and `bounds()`. Another stage (ray bending) can build a grid
+`occupied(points)` and `bounds()`. Replace `mask` (assign a new tensor) rather
+than editing it in place: `bounds()` and `any()` are cached per mask tensor. Another stage (ray bending) can build a grid
 for a deformed space with `OccupancyGrid.from_mask(aabb, mask)` and hand it to
 the renderer instead of the model's own.
 """
@@ -22,6 +23,8 @@ class OccupancyGrid:
         # Everything may be occupied until the first update says otherwise.
         self.mask = torch.ones(n, dtype=torch.bool, device=self.aabb.device)
         self._bounds = None
+        self._bounds_of = None
+        self._any = None
 
     @classmethod
     def from_mask(cls, aabb, mask: torch.Tensor) -> "OccupancyGrid":
@@ -61,7 +64,8 @@ class OccupancyGrid:
 
     def bounds(self) -> torch.Tensor:
         """(2, 3) world box around the occupied cells (the whole aabb when none is occupied)."""
-        if self._bounds is None:
+        if self._bounds is None or self._bounds_of is not self.mask:  # recomputed when the mask is replaced
+            self._bounds_of = self.mask
             r = self.resolution
             occ = self.mask.reshape(r, r, r)  # [z, y, x] since flat = x + R y + R^2 z
             if not bool(occ.any()):
@@ -79,7 +83,10 @@ class OccupancyGrid:
         return self._bounds
 
     def any(self) -> bool:
-        return bool(self.mask.any())
+        """Whether any cell is occupied (cached until the mask changes through update/to)."""
+        if self._any is None or self._any[0] is not self.mask:
+            self._any = (self.mask, bool(self.mask.any()))
+        return self._any[1]
 
     def cell_centers(self, idx: torch.Tensor, jitter: bool = True) -> torch.Tensor:
         r = self.resolution

@@ -150,7 +150,9 @@ def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
     if not sig:
         z = pts.new_zeros(0)
         return z, pts.new_zeros(0, model.config.geo_feat_dim + 1), pts.new_zeros(0, model.encoding.out_dim), pts.new_zeros(0, 3)
-    cat = torch.cat
+    def cat(parts):  # no copy in the common single-chunk case
+        return parts[0] if len(parts) == 1 else torch.cat(parts)
+
     return cat(sig), cat(geo), (cat(encs) if keep_encoding else None), (cat(xs) if keep_encoding else None)
 
 
