@@ -141,8 +141,8 @@ def _igl_locate(V, T, Q):
     return igl.in_element(V, T, Q, tree)
 
 
-@pytest.mark.parametrize("dtype_name", ["float64", "float32"])
-def test_point_location_agrees_with_igl_in_element(dtype_name):
+@pytest.mark.parametrize("backend,dtype_name", [("torch", "float64"), ("torch", "float32"), ("numba", "float64")])
+def test_point_location_agrees_with_igl_in_element(backend, dtype_name):
     import torch
 
     from blender_nerf_deform.engine.point_location import TetLocator
@@ -157,7 +157,10 @@ def test_point_location_agrees_with_igl_in_element(dtype_name):
     lo, hi = V.min(0), V.max(0)
     Q = rng.uniform(lo - 0.05, hi + 0.05, (40000, 3))
     dtype = getattr(torch, dtype_name)
-    loc = TetLocator(V, T, dtype=dtype)
+    if backend == "numba":
+        pytest.importorskip("numba")
+    loc = TetLocator(V, T, dtype=dtype, backend=backend)
+    assert loc.backend == backend
     got, bary = loc.locate(Q, return_barycentric=True)
     got, bary = got.numpy(), bary.double().numpy()
     ref = _igl_locate(V, T, Q)
@@ -186,13 +189,16 @@ def test_point_location_agrees_with_igl_in_element(dtype_name):
     assert np.array_equal(loc.contains(Q).numpy(), inside)
 
 
-def test_point_location_of_points_on_vertices_faces_and_far_away():
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_point_location_of_points_on_vertices_faces_and_far_away(backend):
     import torch
 
     from blender_nerf_deform.engine.point_location import TetLocator
 
+    if backend == "numba":
+        pytest.importorskip("numba")
     V, T = box_cage((3, 3, 3))
-    loc = TetLocator(V, T, dtype=torch.float64)
+    loc = TetLocator(V, T, dtype=torch.float64, backend=backend)
     # Every cage vertex (on up to 24 tets' corners) is found in a tet that has it as a vertex.
     got = loc.locate(V).numpy()
     assert (got >= 0).all()
@@ -227,11 +233,14 @@ def test_cage_warp_maps_deformed_samples_to_rest_and_flags_vacated_space():
     assert (status[out] == CageWarp.OUTSIDE).all() and np.allclose(rest[out], P[out])
 
 
-def test_locator_rejects_a_degenerate_cage():
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_locator_rejects_a_degenerate_cage(backend):
     from blender_nerf_deform.engine.point_location import TetLocator
 
+    if backend == "numba":
+        pytest.importorskip("numba")
     V, T = box_cage((2, 2, 2))
     V = V.copy()
     V[:, 2] = 0.0  # flatten: every tet has zero volume
     with pytest.raises(EngineError, match="degenerate cage"):
-        TetLocator(V, T)
+        TetLocator(V, T, backend=backend)

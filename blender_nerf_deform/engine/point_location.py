@@ -2,26 +2,28 @@
 
 Why hand-written: the renderer locates millions of ray samples per frame in a
 cage whose vertices move every frame, on whatever device the NeRF runs on.
-libigl's `in_element` (an AABB tree, rebuilt per frame, CPU only, one point at
-a time) and scipy/trimesh (CPU, triangle meshes) do not fit that; nothing in
-torch does it. So, as NeRFshop does, a uniform grid whose cells list the tets
-overlapping them, built and queried with vectorised tensor ops only:
+libigl's `in_element` (an AABB tree, rebuilt per frame, CPU only) and
+scipy/trimesh (CPU, triangle meshes) do not fit that; nothing in torch does
+it. So, as NeRFshop does, a grid whose cells list the tets overlapping them:
 
-- build: per-tet bounding box → cell ranges → (tet, cell) pairs expanded with
-  `repeat_interleave`, pairs whose cell lies wholly outside one of the tet's
-  face planes dropped (a conservative box-vs-half-space test, which removes
-  most of the empty corners of the tets' bounding boxes), then sorted by cell
-  into a CSR list (`cell_start`, `cell_tets`). No Python loop over tets.
-- query: point → cell → its candidate list; the candidates are tested in
-  rounds (round k tests the k-th candidate of every point still unresolved),
-  each round one batched barycentric test, so the work shrinks as points are
-  found.
+- torch path (any device; CUDA): a coarse uniform grid, each coarse cell split
+  into up to `max_sub`^3 leaves where it holds many tets (fine near the
+  surface, where fTetWild makes small tets). (tet, leaf) pairs are expanded
+  with `repeat_interleave` from the tets' bounding boxes, pairs whose leaf lies
+  wholly outside one of the tet's face planes are dropped (a conservative
+  box-vs-half-space test), then sorted by leaf into a CSR list. Query: point →
+  leaf → candidates tested in rounds (round k tests the k-th candidate of every
+  unresolved point in one batched barycentric test), the last few points all
+  at once. No Python loop over tets or points.
+- numba path (CPU tensors, when numba is installed; `locate_kernels.py`): the
+  same grid method in fused parallel kernels. On CPU the torch path is bound
+  by materialised gathers and compactions and only matches igl's speed; the
+  kernels are several times faster (BENCHMARKS.md).
 
 Cell size: about `cells_per_tet` cells per tet over the cage's bounding box,
 the trade-off between candidates per cell (query cost) and pairs per tet
 (build cost and memory); `tools/bench_geometry_locate.py` measures it.
-Memory: queries run in chunks of `chunk` points, so millions of samples need
-only a few tensors of chunk size.
+Memory: torch queries run in chunks of `chunk` points.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import numpy as np
 import torch
 
 from .errors import EngineError
+from .locate_kernels import HAVE_NUMBA, NumbaGrid
 
 
 def _tensor(x, dtype, device) -> torch.Tensor:
@@ -90,6 +93,8 @@ class TetLocator:
         leaf_tets: float = 4.0,
         max_sub: int = 2,
         flat_below: int = 65536,
+        backend: str = "auto",
+        numba_cells_per_tet: float | None = 4.0,
     ):
         self.flat_below = flat_below
         if device is None:
@@ -102,6 +107,24 @@ class TetLocator:
         if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
             raise EngineError(f"a cage needs (N, 3) vertices and (M>0, 4) tets, got {tuple(V.shape)} and {tuple(T.shape)}")
         self.vertices, self.tets = V, T
+        if backend == "auto":
+            backend = "numba" if (self.device.type == "cpu" and HAVE_NUMBA) else "torch"
+        if backend == "numba" and (self.device.type != "cpu" or not HAVE_NUMBA):
+            raise EngineError("the numba point-location backend needs numba and a CPU device")
+        self.backend = backend
+        if backend == "numba":
+            if eps is None:
+                self.eps = 1e-10
+            src = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
+            tsrc = tets.detach().cpu().numpy() if isinstance(tets, torch.Tensor) else np.asarray(tets)
+            self._grid = NumbaGrid(src, tsrc, cells_per_tet if numba_cells_per_tet is None else numba_cells_per_tet, self.eps, 4 * max_res)
+            if self._grid.n_degenerate:
+                raise EngineError(f"degenerate cage: {self._grid.n_degenerate} tets have zero volume, so points in them cannot be located")
+            self.res = torch.as_tensor(self._grid.res)
+            self.n_leaves = self._grid.n_cells
+            self.cell_count = torch.from_numpy(np.diff(self._grid.cell_start))
+            self.n_pairs = int(len(self._grid.cell_tets))
+            return
         self.R = barycentric_rows(V, T)
         if not torch.isfinite(self.R).all():
             bad = int((~torch.isfinite(self.R)).flatten(1).any(1).sum())
@@ -182,6 +205,7 @@ class TetLocator:
     def stats(self) -> dict:
         c = self.cell_count
         return {
+            "backend": self.backend,
             "tets": int(len(self.tets)),
             "grid": tuple(int(r) for r in self.res),
             "leaves": self.n_leaves,
@@ -263,6 +287,10 @@ class TetLocator:
         p = _tensor(points, self.dtype, self.device)
         if p.ndim != 2 or p.shape[1] != 3:
             raise EngineError(f"points must have shape (N, 3), got {tuple(p.shape)}")
+        if self.backend == "numba":
+            out, bary = self._grid.query(p.numpy(), return_barycentric)
+            out = torch.from_numpy(out)
+            return (out, torch.from_numpy(bary).to(self.dtype)) if return_barycentric else out
         outs, barys = [], []
         for s in range(0, len(p), chunk):
             o, b = self._locate_chunk(p[s : s + chunk], return_barycentric)
