@@ -24,6 +24,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from dataset_fixtures import *  # noqa: E402,F401,F403  (default scene + procedural_dataset, session-scoped)
+from addon_fixtures import *  # noqa: E402,F401,F403  (sphere_nerf: a small trained NeRF, session-scoped)
 
 
 @pytest.fixture

@@ -105,20 +105,6 @@ def test_installed_extension_enables_as_bl_ext_module(installed):
     assert prefs.worker_python == ""
 
 
-def test_render_engine_renders_a_frame(installed, tmp_path):
-    bpy, _ = installed
-    scene = bpy.context.scene
-    scene.render.engine = "NERF_DEFORM"
-    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 48, 50
-    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    scene.render.filepath = str(tmp_path / "frame.png")
-    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
-    image = bpy.data.images.load(str(tmp_path / "frame.png"))
-    assert tuple(image.size) == (32, 24)
-
-
 def test_disabling_leaves_nothing_registered(installed):
     bpy, _ = installed
     bpy.ops.preferences.addon_disable(module=EXT_MODULE)

@@ -9,7 +9,8 @@ from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from .jobs import WorkerOperator
-from .properties import owning_nerf
+
+NERFDEFORM_ENGINE = "NERF_DEFORM"
 
 
 def checkpoint_path(nerf: bpy.types.Object) -> str:
@@ -57,6 +58,17 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         # The file browser first; its confirmation calls execute().
         return ImportHelper.invoke(self, context, event)
 
+    @staticmethod
+    def _prepare_scene(scene) -> None:
+        """Render with NeRF Deform, and show the NeRF's colours as it learnt them: the Standard
+        view transform undoes exactly the sRGB decoding of the render, and dithering would add noise."""
+        scene.render.engine = NERFDEFORM_ENGINE
+        scene.view_settings.view_transform = "Standard"
+        scene.view_settings.look = "None"
+        scene.view_settings.exposure, scene.view_settings.gamma = 0.0, 1.0
+        scene.render.dither_intensity = 0.0
+        scene.render.film_transparent = True
+
     def apply(self, context, result, arrays):
         lo, hi = result["aabb"][:3], result["aabb"][3:]
         name = os.path.splitext(os.path.basename(os.path.dirname(self._path)) or "NeRF")[0] or "NeRF"
@@ -70,6 +82,7 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         s.aabb = [*lo, *hi]
         context.collection.objects.link(nerf)
         nerf.location = context.scene.cursor.location
+        self._prepare_scene(context.scene)
         for obj in context.selected_objects:
             obj.select_set(False)
         nerf.select_set(True)

@@ -1,11 +1,63 @@
-"""The "NeRF Deform" render engine (F12, Render Animation, `blender -b -a`).
+"""The "NeRF Deform" render engine: F12, Render Animation, `blender -b file.blend -a / -s -e`.
 
-Thin, as Cycles' add-on is: it turns the scene into an engine request. Until
-the rendering issue lands it writes a transparent frame and says so.
+Thin, as Cycles' add-on is: it turns the scene at the frame being rendered
+into one engine request (camera in the NeRF's frame, checkpoint), waits for
+the worker's answer while Blender's progress bar and Esc (`test_break`) work,
+and writes the passes:
+
+- Combined: RGBA, premultiplied as Blender's render buffers are, in scene
+  linear (the NeRF's sRGB colours decoded), so the "Standard" view transform
+  gives back exactly the colours the NeRF learnt.
+- Depth (when the view layer's Z pass is on): distance from the camera plane
+  in world units, as Cycles writes it; 1e10 where nothing was hit.
+- Alpha: coverage, one channel.
+
+Render results are stored bottom row first; the engine's rows run top-down.
 """
 
 import bpy
 import numpy as np
+
+from . import jobs
+from .camera import CameraError, pinhole_from_blender
+from .nerf_ops import checkpoint_path
+from .worker_client import WorkerError
+
+NO_HIT_DEPTH = 1e10
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def nerfs_to_render(scene) -> list:
+    return sorted(
+        (o for o in scene.objects if o.nerf_deform.role == "NERF" and not o.hide_render), key=lambda o: o.name
+    )
+
+
+def frame_request(depsgraph, nerf) -> tuple[dict, dict, np.ndarray]:
+    """The worker request that renders `nerf` from the scene camera, and the per-pixel factor
+    that turns the engine's depth (NeRF units along unit rays) into Blender's planar depth."""
+    scene = depsgraph.scene
+    if scene.camera is None:
+        raise CameraError(f"scene '{scene.name}' has no active camera")
+    camera = scene.camera.evaluated_get(depsgraph)
+    nerf_eval = nerf.evaluated_get(depsgraph)
+    pinhole = pinhole_from_blender(scene, camera)
+    to_nerf = np.linalg.inv(np.array(nerf_eval.matrix_world, dtype=np.float64))
+    c2w = to_nerf @ np.array(pinhole.camera_to_world, dtype=np.float64)
+    # Camera-space ray of each pixel has z = -1: its planar depth is 1 per unit of that vector.
+    i = np.arange(pinhole.width) + 0.5
+    j = np.arange(pinhole.height) + 0.5
+    jj, ii = np.meshgrid(j, i, indexing="ij")
+    d_cam = np.stack([(ii - pinhole.cx) / pinhole.fx, -(jj - pinhole.cy) / pinhole.fy, -np.ones_like(ii)], -1)
+    length_in_nerf = np.linalg.norm(d_cam @ c2w[:3, :3].T, axis=-1)
+    params = {
+        "checkpoint": checkpoint_path(nerf),
+        "camera": {**pinhole.as_dict(), "camera_to_world": c2w.tolist()},
+    }
+    return params, {}, 1.0 / length_in_nerf
 
 
 class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
@@ -14,16 +66,52 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
     bl_use_preview = False
     bl_use_postprocess = True
 
+    def update_render_passes(self, scene=None, renderlayer=None):
+        self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        if renderlayer.use_pass_z:
+            self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
+        self.register_pass(scene, renderlayer, "Alpha", 1, "A", "VALUE")
+
     def render(self, depsgraph):
         scene = depsgraph.scene
         scale = scene.render.resolution_percentage / 100.0
-        width = int(scene.render.resolution_x * scale)
-        height = int(scene.render.resolution_y * scale)
-        pixels = np.zeros((width * height, 4), dtype=np.float32)
+        width, height = int(scene.render.resolution_x * scale), int(scene.render.resolution_y * scale)
+        self.add_pass("Alpha", 1, "A")
+        rgba = np.zeros((height, width, 4), dtype=np.float32)
+        depth = np.full((height, width), NO_HIT_DEPTH, dtype=np.float32)
+        try:
+            nerfs = nerfs_to_render(scene)
+            if not nerfs:
+                raise ValueError("no NeRF object in the scene to render: use Load NeRF first")
+            if len(nerfs) > 1:
+                self.report({"WARNING"}, f"NeRF Deform renders one NeRF per scene; rendering {nerfs[0].name}")
+            params, arrays, depth_factor = frame_request(depsgraph, nerfs[0])
+            self.update_stats("", f"NeRF Deform: rendering {nerfs[0].name}, frame {scene.frame_current}")
+            result, out = jobs.worker(bpy.context).call(
+                "render", params, arrays, on_progress=lambda f, _m: self.update_progress(f), should_cancel=self.test_break
+            )
+            rgba = out["rgba"]
+            alpha = rgba[..., 3]
+            hit = alpha > 1e-6
+            depth = np.where(hit, out["depth"] * depth_factor, NO_HIT_DEPTH).astype(np.float32)
+            rgba = np.concatenate([srgb_to_linear(rgba[..., :3]) * alpha[..., None], alpha[..., None]], axis=-1)
+        except (CameraError, ValueError, WorkerError) as error:
+            if isinstance(error, WorkerError) and error.kind == "cancelled":
+                return
+            self.report({"ERROR"}, f"NeRF Deform: {error}")
+            self.error_set(f"NeRF Deform: {error}")
+        self._write(width, height, rgba, depth)
+
+    def _write(self, width, height, rgba, depth):
         result = self.begin_result(0, 0, width, height)
-        result.layers[0].passes["Combined"].rect.foreach_set(pixels.ravel())
+        layer = result.layers[0]
+        # Blender stores rows bottom-up.
+        layer.passes["Combined"].rect.foreach_set(np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel())
+        if "Depth" in layer.passes:
+            layer.passes["Depth"].rect.foreach_set(np.ascontiguousarray(depth[::-1], dtype=np.float32).ravel())
+        if "Alpha" in layer.passes:
+            layer.passes["Alpha"].rect.foreach_set(np.ascontiguousarray(rgba[::-1, :, 3], dtype=np.float32).ravel())
         self.end_result(result)
-        self.report({"WARNING"}, "NeRF Deform: rendering is not implemented yet")
 
 
 # Blender's own properties panels that make sense for this engine: output format,

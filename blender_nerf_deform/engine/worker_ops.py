@@ -39,3 +39,34 @@ def load(job: Job) -> dict:
         "config": model.config.to_dict(),
         "device": str(model.device),
     }
+
+
+@op("render")
+def render(job: Job) -> tuple[dict, dict]:
+    """Render one frame of a NeRF from a pinhole camera given in the NeRF's frame.
+
+    params: checkpoint, camera {width, height, fx, fy, cx, cy, camera_to_world}, device.
+    Returns arrays `rgba` (H,W,4) float32 straight alpha, rows top-down, and `depth`
+    (H,W) float32: expected distance along each unit ray, NeRF units, 0 where empty.
+    """
+    import numpy as np
+
+    from .renderer import Camera, render_image
+
+    params = job.params
+    if "deformed_vertices" in job.arrays:
+        raise EngineError("rendering a deformed cage is not implemented yet (ray bending, issue 5)")
+    model = cached_model(params["checkpoint"], params.get("device", "auto"))
+    cam = params["camera"]
+    camera = Camera(
+        c2w=np.asarray(cam["camera_to_world"], dtype=np.float64),
+        fx=float(cam["fx"]),
+        fy=float(cam["fy"]),
+        cx=float(cam["cx"]),
+        cy=float(cam["cy"]),
+        width=int(cam["width"]),
+        height=int(cam["height"]),
+    )
+    out = render_image(model, camera, progress=lambda done, total: job.progress(done / total, "rendering"))
+    stats = {k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")}
+    return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}

@@ -1,0 +1,154 @@
+"""The NeRF Deform RenderEngine renders what the engine renders, from Blender's camera and placement."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import REPO
+
+
+def _engine_render(ckpt, cameras_json, out_dir):
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", "render", "--nerf", str(ckpt), "--cameras", str(cameras_json),
+         "--out", str(out_dir)],
+        cwd=REPO, capture_output=True, text=True,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def _scene_with_nerf(bpy, ckpt, frame, angle_x, size, nerf_matrix=None):
+    """Load NeRF through its operator, and a camera seeing the NeRF as the dataset frame does."""
+    from mathutils import Matrix
+
+    assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
+    nerf = bpy.context.active_object
+    scene = bpy.context.scene
+    if nerf_matrix is not None:
+        nerf.matrix_world = Matrix(nerf_matrix)
+    cam_data = bpy.data.cameras.new("Camera")
+    cam_data.sensor_fit, cam_data.angle_x = "HORIZONTAL", angle_x
+    camera = bpy.data.objects.new("Camera", cam_data)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    camera.matrix_world = nerf.matrix_world @ Matrix(frame["transform_matrix"])
+    scene.render.resolution_x = scene.render.resolution_y = size
+    scene.render.resolution_percentage = 100
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    scene.render.image_settings.color_depth = "8"
+    return nerf, camera
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("placed", [False, True], ids=["at_origin", "moved_rotated_scaled"])
+def test_f12_matches_the_engine_cli_render(addon, sphere_nerf, tmp_path, placed):
+    bpy = addon
+    ckpt, data = sphere_nerf
+    meta = json.loads((data / "transforms.json").read_text())
+    frame = meta["frames"][3]
+    one = {**meta, "frames": [frame]}
+    (tmp_path / "one.json").write_text(json.dumps(one))
+    _engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
+    name = frame["file_path"].rsplit("/", 1)[-1].rsplit(".", 1)[0]
+    expected = np.asarray(Image.open(tmp_path / "cli" / f"{name}.png").convert("RGBA"), dtype=np.int16)
+
+    placement = None
+    if placed:  # the NeRF object moved, turned and scaled; the camera keeps its view of it
+        from mathutils import Euler, Matrix
+
+        placement = Matrix.LocRotScale((2.0, -1.0, 0.5), Euler((0.3, -0.2, 1.1)), (1.7, 1.7, 1.7))
+    _scene_with_nerf(bpy, ckpt, frame, meta["camera_angle_x"], meta["w"], placement)
+    bpy.context.scene.render.filepath = str(tmp_path / "blender.png")
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    got = np.asarray(Image.open(tmp_path / "blender.png").convert("RGBA"), dtype=np.int16)
+
+    assert got.shape == expected.shape
+    assert expected[..., 3].max() > 120 and expected[..., 3].min() < 20  # both the NeRF and empty space are in view
+    # Same pixels, rows the right way up; 8-bit rounding through Blender's colour pipeline aside.
+    visible = expected[..., 3] > 8
+    assert np.abs(got[..., 3] - expected[..., 3]).max() <= 2
+    assert np.abs(got[..., :3] - expected[..., :3])[visible].max() <= 3
+
+
+def _render_exr_passes(bpy, path):
+    """Render the scene to a multilayer EXR and read its passes back: {pass name: (H,W[,C]) array}."""
+    import OpenEXR
+
+    scene = bpy.context.scene
+    bpy.context.view_layer.use_pass_z = True
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+    scene.render.filepath = str(path)
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    passes = {}
+    with OpenEXR.File(str(path), separate_channels=True) as exr:
+        for part in exr.parts:  # Blender 5 writes one part per pass
+            for name, channel in part.channels.items():
+                _layer, pass_name, chan = name.split(".")
+                passes.setdefault(pass_name, {})[chan] = channel.pixels.copy()
+    return {name: np.stack([c[k] for k in "RGBA" if k in c], -1) if len(c) > 1 else next(iter(c.values()))
+            for name, c in passes.items()}
+
+
+@pytest.mark.slow
+def test_depth_is_planar_world_distance_and_alpha_is_coverage(addon, sphere_nerf, tmp_path):
+    bpy = addon
+    from mathutils import Euler, Matrix
+
+    from blender_nerf_deform.addon import jobs
+
+    ckpt, data = sphere_nerf
+    meta = json.loads((data / "transforms.json").read_text())
+    # A wide lens, so that rays near the corners miss the NeRF's box: nothing there at all.
+    frame, size, angle = meta["frames"][5], meta["w"], 2.4
+    nerf, _ = _scene_with_nerf(bpy, ckpt, frame, angle, size)
+    plain = _render_exr_passes(bpy, tmp_path / "plain.exr")
+    assert np.allclose(plain["Alpha"], plain["Combined"][..., 3])
+    hit = plain["Alpha"] > 1e-6
+    assert hit.any() and (~hit).any()
+    assert np.all(plain["Depth"][~hit] == 1e10)
+
+    # Planar depth = distance along the unit ray / length of the pixel's camera-space ray with z = -1.
+    f = 0.5 * size / np.tan(0.5 * angle)
+    centres = np.arange(size) + 0.5
+    jj, ii = np.meshgrid(centres, centres, indexing="ij")
+    ray_length = np.sqrt(((ii - size / 2) / f) ** 2 + ((jj - size / 2) / f) ** 2 + 1.0)
+    camera = {"width": size, "height": size, "fx": f, "fy": f, "cx": size / 2, "cy": size / 2,
+              "camera_to_world": frame["transform_matrix"]}
+    _, out = jobs.worker(bpy.context).call("render", {"checkpoint": str(ckpt), "camera": camera})
+    assert np.allclose(plain["Depth"][hit], (out["depth"] / ray_length)[hit], rtol=1e-4)
+
+    # The NeRF scaled 2x (and moved, turned) with the camera keeping its view: same picture, twice the depth.
+    placement = Matrix.LocRotScale((1.0, 2.0, -0.5), Euler((0.2, 0.4, -0.7)), (2.0, 2.0, 2.0))
+    nerf.matrix_world = placement
+    bpy.context.scene.camera.matrix_world = placement @ Matrix(frame["transform_matrix"]) @ Matrix.Scale(0.5, 4)
+    scaled = _render_exr_passes(bpy, tmp_path / "scaled.exr")
+    # Blender composes object matrices in float32, so the rays move by ~1e-7 and a fixed-step
+    # march samples slightly different points: equal up to that, not bit for bit.
+    assert np.allclose(scaled["Combined"], plain["Combined"], atol=1e-2)
+    assert np.allclose(scaled["Depth"][hit], 2.0 * plain["Depth"][hit], rtol=1e-2)
+
+
+def test_render_without_a_nerf_is_a_clear_error(addon, tmp_path):
+    bpy = addon
+    scene = bpy.context.scene
+    scene.render.engine = "NERF_DEFORM"
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    with pytest.raises(RuntimeError, match="no NeRF object in the scene to render: use Load NeRF first"):
+        bpy.ops.render.render()
+
+
+def test_orthographic_camera_is_refused_by_the_render(addon, sphere_nerf):
+    bpy = addon
+    ckpt, data = sphere_nerf
+    meta = json.loads((data / "transforms.json").read_text())
+    _, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][0], meta["camera_angle_x"], 16)
+    camera.data.type = "ORTHO"
+    with pytest.raises(RuntimeError, match="'Camera' is orthographic"):
+        bpy.ops.render.render()
