@@ -1,0 +1,112 @@
+"""Live preview: the extracted mesh follows the deformation of the cage.
+
+The surface mesh is embedded in the rest cage (a tet and 4 weights per
+vertex, stored in the .blend), so its deformed shape is a sparse linear map of
+the deformed cage vertices. The result goes into a shape key, "NeRF Deform",
+so the mesh's own vertices stay the rest shape (selections, re-embedding and
+new handles are made on it) while the viewport shows the deformed shape.
+
+Cage Modifiers mode needs no worker: the cage object's evaluated vertices
+(after its Armature, Lattice, ... modifiers) are the deformed cage. The
+handler runs after every depsgraph update and frame change, is guarded against
+re-entrancy (writing the shape key triggers another update), and skips NeRFs
+whose deformed cage did not change.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from ..engine.embedding import Embedding
+from .cage_store import CageDataError, evaluated_cage_vertices, has_cage, load_cage, load_embedding
+from .properties import settings
+
+PREVIEW_KEY = "NeRF Deform"
+
+_updating = False
+_last_pose: dict[str, bytes] = {}
+
+
+def surface_embedding(surface: bpy.types.Object, tets: np.ndarray) -> Embedding:
+    tet_ids, weights = load_embedding(surface.data)
+    return Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=weights, n_outside=0)
+
+
+def show_deformed(surface: bpy.types.Object, positions: np.ndarray) -> None:
+    """Put `positions` (the surface's vertices, its local frame) in the preview shape key."""
+    if surface.data.shape_keys is None:
+        surface.shape_key_add(name="Basis", from_mix=False)
+    key = surface.data.shape_keys.key_blocks.get(PREVIEW_KEY) or surface.shape_key_add(name=PREVIEW_KEY, from_mix=False)
+    key.value = 1.0
+    key.data.foreach_set("co", np.ascontiguousarray(positions, dtype=np.float32).ravel())
+    surface.data.update()
+
+
+def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
+    """Deformed surface of `nerf` now, or None when its mode needs the worker (ARAP, affine regions)."""
+    s = settings(nerf)
+    if s.deformation_mode != "MODIFIERS":
+        return None
+    cage, surface = s.cage, s.surface
+    _rest, tets = load_cage(cage.data)
+    deformed = evaluated_cage_vertices(cage, depsgraph)
+    return surface_embedding(surface, tets).apply(deformed)
+
+
+def _previewable(nerf: bpy.types.Object) -> bool:
+    s = settings(nerf)
+    return (
+        s.cage is not None
+        and s.surface is not None
+        and has_cage(s.cage.data)
+        and s.surface.mode != "EDIT"  # the artist is editing selections on the rest shape
+    )
+
+
+def update_all(depsgraph) -> None:
+    """Refresh every NeRF's preview whose deformed cage changed."""
+    global _updating
+    if _updating:
+        return
+    _updating = True
+    try:
+        for nerf in [o for o in depsgraph.scene.objects if o.nerf_deform.role == "NERF"]:
+            if not _previewable(nerf):
+                continue
+            try:
+                positions = preview_positions(nerf, depsgraph)
+            except CageDataError as error:
+                print(f"NeRF Deform preview of {nerf.name}: {error}")
+                continue
+            if positions is None:
+                continue
+            pose = positions.astype(np.float32).tobytes()
+            if _last_pose.get(nerf.name) == pose:
+                continue
+            _last_pose[nerf.name] = pose
+            show_deformed(settings(nerf).surface, positions)
+    finally:
+        _updating = False
+
+
+@bpy.app.handlers.persistent
+def _on_depsgraph_update(scene, depsgraph):
+    update_all(depsgraph)
+
+
+@bpy.app.handlers.persistent
+def _on_frame_change(scene, depsgraph):
+    update_all(depsgraph)
+
+
+def register():
+    bpy.app.handlers.depsgraph_update_post.append(_on_depsgraph_update)
+    bpy.app.handlers.frame_change_post.append(_on_frame_change)
+
+
+def unregister():
+    for handlers, fn in ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update), (bpy.app.handlers.frame_change_post, _on_frame_change)):
+        if fn in handlers:
+            handlers.remove(fn)
+    _last_pose.clear()
