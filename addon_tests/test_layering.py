@@ -47,6 +47,21 @@ def test_checker_catches_torch_reached_through_an_engine_module(tmp_path):
     assert any("reaches torch" in p and "formats" in p and "field" in p for p in problems), problems
 
 
+def test_checker_catches_a_library_blender_lacks_reached_through_an_engine_module(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "engine/cage.py", "import numpy as np\n\ndef build():\n    import pytetwild\n")
+    _write(root, "addon/ops.py", "from ..engine.cage import build\n")
+    (problem,) = violations(root)
+    assert "reaches pytetwild" in problem and "addon/ops.py:1" in problem
+
+
+def test_checker_catches_a_third_party_import_in_addon(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "addon/io.py", "import bpy, bmesh\nfrom PIL import Image\n")
+    (problem,) = violations(root)
+    assert "addon/io.py:2" in problem and "PIL" in problem
+
+
 def test_checker_allows_pure_numpy_engine_modules_in_addon(tmp_path):
     root = _fake_package(tmp_path)
     _write(root, "engine/embedding.py", "import numpy as np\n")

@@ -3,7 +3,8 @@
 
 - `engine/` never imports Blender's modules (bpy and friends).
 - `addon/` never imports torch, neither directly nor through an engine module
-  it imports (the add-on may use engine modules that are pure numpy).
+  it imports; and the engine modules it imports reach nothing but the standard
+  library and numpy (all that Blender's own Python has besides bpy).
 
 Every `import` statement counts, including those inside functions, so a lazy
 import cannot slip past. Exits 1 and lists the violations when any is found.
@@ -17,6 +18,8 @@ from pathlib import Path
 
 BLENDER_MODULES = {"bpy", "bpy_extras", "bmesh", "mathutils", "gpu", "gpu_extras", "bgl", "blf", "aud", "addon_utils", "bl_math", "idprop", "imbuf", "freestyle"}
 TORCH_MODULES = {"torch", "torchvision", "torchaudio", "functorch", "tinycudann"}
+# What engine modules used by the add-on may import: Blender's Python has numpy and the stdlib.
+ADDON_SAFE = set(sys.stdlib_module_names) | {"numpy"}
 
 
 def _module_name(package_root: Path, path: Path) -> str:
@@ -71,18 +74,19 @@ def violations(package_root: Path) -> list[str]:
                 if _top(name) in BLENDER_MODULES:
                     problems.append(f"{path}:{line}: engine imports {name} (engine/ must not import Blender modules)")
 
-    # Torch reachable from addon/ through any chain of project modules.
-    def reaches_torch(module: str, seen: set[str]) -> list[str] | None:
+    # A module Blender's Python lacks, reachable from addon/ through any chain of engine modules.
+    def reaches_unsafe(module: str, seen: set[str]) -> list[str] | None:
         if module in seen or module not in graph:
             return None
         seen.add(module)
         for _line, name in graph[module][1]:
-            if _top(name) in TORCH_MODULES:
+            if name.startswith(pkg + ".") or name == pkg:
+                if not name.startswith(f"{pkg}.addon"):
+                    chain = reaches_unsafe(name, seen)
+                    if chain:
+                        return [module] + chain
+            elif _top(name) not in ADDON_SAFE:
                 return [module, name]
-            if name.startswith(pkg + ".") and not name.startswith(f"{pkg}.addon"):
-                chain = reaches_torch(name, seen)
-                if chain:
-                    return [module] + chain
         return None
 
     for module, (path, imports) in graph.items():
@@ -91,10 +95,15 @@ def violations(package_root: Path) -> list[str]:
         for line, name in imports:
             if _top(name) in TORCH_MODULES:
                 problems.append(f"{path}:{line}: addon imports {name} (addon/ must not import torch)")
+            elif not (name == pkg or name.startswith(pkg + ".")) and _top(name) not in ADDON_SAFE | BLENDER_MODULES:
+                problems.append(f"{path}:{line}: addon imports {name}, which Blender's Python does not have")
             elif name.startswith(f"{pkg}.engine"):
-                chain = reaches_torch(name, set())
+                chain = reaches_unsafe(name, set())
                 if chain:
-                    problems.append(f"{path}:{line}: addon imports {name}, which reaches torch: {' -> '.join(chain)}")
+                    problems.append(
+                        f"{path}:{line}: addon imports {name}, which reaches {chain[-1]} "
+                        f"(not in Blender's Python): {' -> '.join(chain)}"
+                    )
     return problems
 
 
