@@ -13,7 +13,7 @@ j counted from the top row, has the camera-space direction
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -36,6 +36,12 @@ class Pinhole:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def downscaled(self, factor: int) -> "Pinhole":
+        """The same view on a pixel grid `factor` times coarser (for progressive previews)."""
+        width, height = max(1, self.width // factor), max(1, self.height // factor)
+        sx, sy = width / self.width, height / self.height
+        return replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy)
 
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """(N,3) world points → (N,2) pixel coordinates (x right, y down, pixel centres at .5)."""

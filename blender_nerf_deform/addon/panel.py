@@ -24,6 +24,10 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         layout.prop(s, "checkpoint")
         layout.prop(s, "deformation_mode")
 
+        row = layout.row(align=True)
+        row.operator("nerf_deform.preview_render", icon="RENDER_STILL")
+        row.operator("nerf_deform.cancel_preview", text="", icon="CANCEL")
+
         box = layout.box()
         box.label(text="Handles")
         col = box.column(align=True)

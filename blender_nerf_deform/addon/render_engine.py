@@ -36,7 +36,7 @@ def nerfs_to_render(scene) -> list:
     )
 
 
-def frame_request(depsgraph, nerf) -> tuple[dict, dict, np.ndarray]:
+def frame_request(depsgraph, nerf, downscale: int = 1) -> tuple[dict, dict, np.ndarray]:
     """The worker request that renders `nerf` from the scene camera, and the per-pixel factor
     that turns the engine's depth (NeRF units along unit rays) into Blender's planar depth."""
     scene = depsgraph.scene
@@ -44,7 +44,7 @@ def frame_request(depsgraph, nerf) -> tuple[dict, dict, np.ndarray]:
         raise CameraError(f"scene '{scene.name}' has no active camera")
     camera = scene.camera.evaluated_get(depsgraph)
     nerf_eval = nerf.evaluated_get(depsgraph)
-    pinhole = pinhole_from_blender(scene, camera)
+    pinhole = pinhole_from_blender(scene, camera).downscaled(downscale)
     to_nerf = np.linalg.inv(np.array(nerf_eval.matrix_world, dtype=np.float64))
     c2w = to_nerf @ np.array(pinhole.camera_to_world, dtype=np.float64)
     # Camera-space ray of each pixel has z = -1: its planar depth is 1 per unit of that vector.
