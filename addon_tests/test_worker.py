@@ -139,3 +139,26 @@ def test_load_of_a_missing_checkpoint_names_the_path(worker, tmp_path):
     with pytest.raises(WorkerError, match=f"NeRF checkpoint {missing} does not exist") as info:
         worker.call("load", {"path": str(missing)})
     assert info.value.kind == "input"
+
+
+@pytest.mark.slow
+def test_render_cancelled_midway_stops_at_the_next_chunk_and_the_worker_lives_on(worker, sphere_nerf):
+    from blender_nerf_deform.addon.worker_client import WorkerError
+
+    ckpt, _ = sphere_nerf
+    c2w = [[1, 0, 0, 0], [0, 0, -1, -3], [0, 1, 0, 0], [0, 0, 0, 1]]  # 3 units out on -y, looking at the origin
+
+    def request(size):
+        f = 0.5 * size / np.tan(0.45)
+        camera = {"width": size, "height": size, "fx": f, "fy": f, "cx": size / 2, "cy": size / 2, "camera_to_world": c2w}
+        return {"checkpoint": str(ckpt), "camera": camera}
+
+    params = request(320)  # 102400 rays: many chunks, so there is a "midway"
+    progress = []
+    with pytest.raises(WorkerError) as info:
+        worker.call("render", params, on_progress=lambda frac, msg: progress.append(frac),
+                    should_cancel=lambda: len(progress) > 0)
+    assert info.value.kind == "cancelled"
+    assert progress and max(progress) < 1.0
+    result, arrays = worker.call("render", request(24))  # the same worker renders the next request in full
+    assert arrays["rgba"].shape == (24, 24, 4)
