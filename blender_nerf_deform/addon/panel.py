@@ -22,6 +22,7 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         s = nerf.nerf_deform
         layout.label(text=nerf.name, icon="OUTLINER_OB_EMPTY")
         layout.prop(s, "checkpoint")
+        layout.operator("nerf_deform.build_cage", icon="MESH_ICOSPHERE")
         layout.prop(s, "deformation_mode")
 
         row = layout.row(align=True)

@@ -70,3 +70,40 @@ def render(job: Job) -> tuple[dict, dict]:
     out = render_image(model, camera, progress=lambda done, total: job.progress(done / total, "rendering"))
     stats = {k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")}
     return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}
+
+
+@op("cage")
+def cage(job: Job) -> tuple[dict, dict]:
+    """Build the tetrahedral cage around a surface mesh once, and embed the surface in it.
+
+    arrays: vertices (V,3), faces (F,3) of the surface (the NeRF's frame).
+    params: margin, edge_length, target_tets (each optional; None = automatic).
+    Returns arrays vertices (N,3), tets (M,4), and the surface's embedding
+    tet_ids (V,), weights (V,4).
+    """
+    import numpy as np
+
+    from .cage import build_cage
+    from .embedding import embed_points
+
+    vertices = np.asarray(job.arrays["vertices"], dtype=np.float64)
+    faces = np.asarray(job.arrays["faces"], dtype=np.int64)
+    p = job.params
+    job.progress(0.05, "tetrahedralizing")
+    built = build_cage(vertices, faces, p.get("margin"), edge_length=p.get("edge_length"), target_tets=p.get("target_tets"))
+    job.progress(0.9, "embedding the surface")
+    embedding = embed_points(vertices, built.vertices, built.tets)
+    result = {
+        "n_vertices": int(len(built.vertices)),
+        "n_tets": int(len(built.tets)),
+        "margin": built.margin,
+        "clearance": built.clearance,
+        "n_outside": embedding.n_outside,
+        "timings": built.timings,
+    }
+    return result, {
+        "vertices": built.vertices,
+        "tets": built.tets,
+        "tet_ids": embedding.tet_ids,
+        "weights": embedding.weights,
+    }

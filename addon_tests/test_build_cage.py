@@ -1,0 +1,50 @@
+"""Build Cage through bpy.ops, with the real worker and fTetWild; and its error before Extract Mesh."""
+
+import numpy as np
+import pytest
+
+
+def _nerf(bpy, with_surface=True):
+    nerf = bpy.data.objects.new("NeRF", None)
+    nerf.nerf_deform.role = "NERF"
+    bpy.context.scene.collection.objects.link(nerf)
+    surface = None
+    if with_surface:
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=0.6, location=(0.1, 0, 0.2))
+        surface = bpy.context.active_object
+        surface.nerf_deform.role = "SURFACE"
+        surface.parent = nerf
+        nerf.nerf_deform.surface = surface
+    bpy.context.view_layer.objects.active = nerf
+    return nerf, surface
+
+
+@pytest.mark.slow
+def test_build_cage_stores_a_cage_that_embeds_the_surface(addon):
+    bpy = addon
+    from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+    from blender_nerf_deform.engine.barycentric import signed_volumes
+
+    nerf, surface = _nerf(bpy)
+    assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
+    cage = nerf.nerf_deform.cage
+    assert cage is not None and cage.parent == nerf and cage.nerf_deform.role == "CAGE" and cage.hide_render
+    rest, tets = load_cage(cage.data)
+    assert len(tets) > 10 and (signed_volumes(rest, tets) > 0).all()
+    tet_ids, weights = load_embedding(surface.data)
+    co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
+    surface.data.vertices.foreach_get("co", co)
+    # The embedding reproduces every surface vertex from the rest cage, from inside its tet.
+    rebuilt = np.einsum("nk,nkc->nc", weights, rest[tets[tet_ids]])
+    assert np.allclose(rebuilt, co.reshape(-1, 3), atol=1e-5)
+    assert (weights > -1e-9).all()
+    # The cage object shows its boundary and can carry modifiers.
+    assert len(cage.data.polygons) > 0 and len(cage.data.vertices) == len(rest)
+
+
+def test_build_cage_before_extract_mesh_says_what_to_do(addon):
+    bpy = addon
+    nerf, _ = _nerf(bpy, with_surface=False)
+    with pytest.raises(RuntimeError, match="NeRF has no extracted mesh yet: run Extract Mesh first"):
+        bpy.ops.nerf_deform.build_cage()
+    assert nerf.nerf_deform.cage is None and len(bpy.data.objects) == 1

@@ -1,0 +1,78 @@
+"""Build Cage: the NeRF's tetrahedral cage, built once from its extracted mesh and kept in the .blend."""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from .cage_store import store_cage, store_embedding
+from .jobs import WorkerOperator
+from .preview import PREVIEW_KEY
+from .properties import owning_nerf
+
+
+def surface_arrays(surface: bpy.types.Object) -> dict[str, np.ndarray]:
+    """Rest vertices and triangles of a mesh (its own vertices: the preview shape key aside)."""
+    mesh = surface.data
+    co = np.empty(3 * len(mesh.vertices), dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    mesh.calc_loop_triangles()
+    tris = np.empty(3 * len(mesh.loop_triangles), dtype=np.int32)
+    mesh.loop_triangles.foreach_get("vertices", tris)
+    return {"vertices": co.reshape(-1, 3).astype(np.float64), "faces": tris.reshape(-1, 3)}
+
+
+class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
+    """Build the NeRF's tetrahedral cage around its extracted mesh (once; every frame deforms this cage)"""
+
+    bl_idname = "nerf_deform.build_cage"
+    bl_label = "Build Cage"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return owning_nerf(context.active_object) is not None
+
+    def request(self, context):
+        nerf = owning_nerf(context.active_object)
+        surface = nerf.nerf_deform.surface
+        if surface is None:
+            raise ValueError(f"{nerf.name} has no extracted mesh yet: run Extract Mesh first")
+        if surface.mode == "EDIT":
+            raise ValueError(f"leave Edit Mode on {surface.name} first")
+        arrays = surface_arrays(surface)
+        if len(arrays["faces"]) == 0:
+            raise ValueError(f"{surface.name} has no faces to build a cage around")
+        self._nerf = nerf
+        return "cage", {}, arrays
+
+    def apply(self, context, result, arrays):
+        nerf = self._nerf
+        s = nerf.nerf_deform
+        surface = s.surface
+        cage = s.cage
+        if cage is None:
+            cage = bpy.data.objects.new(f"{nerf.name} Cage", bpy.data.meshes.new(f"{nerf.name} Cage"))
+            for collection in nerf.users_collection:
+                collection.objects.link(cage)
+            cage.parent = nerf
+            cage.nerf_deform.role = "CAGE"
+            cage.display_type = "WIRE"
+            cage.hide_render = True
+            s.cage = cage
+        store_cage(cage.data, arrays["vertices"], arrays["tets"])
+        store_embedding(surface.data, arrays["tet_ids"], arrays["weights"])
+        # A rebuilt cage starts undeformed: drop the previous preview.
+        keys = surface.data.shape_keys
+        if keys is not None and (key := keys.key_blocks.get(PREVIEW_KEY)) is not None:
+            surface.shape_key_remove(key)
+        self.report(
+            {"INFO"},
+            f"{cage.name}: {result['n_tets']} tets, {result['n_vertices']} vertices, margin {result['margin']:.3g} "
+            f"(clearance {result['clearance']:.3g})",
+        )
+        return {"FINISHED"}
+
+
+_classes = (NERFDEFORM_OT_build_cage,)
+register, unregister = bpy.utils.register_classes_factory(_classes)
