@@ -68,15 +68,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("extract", help="extract a filtered surface mesh from a NeRF's density")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--out", required=True, metavar="MESH.ply", help="output mesh with vertex colours")
-    p.add_argument("--threshold", type=float, metavar="T", help="density threshold of the surface")
+    p.add_argument("--threshold", type=float, metavar="T", help="density threshold of the surface (default 10)")
     p.add_argument("--resolution", type=int, metavar="R", help="grid resolution per axis (default 256)")
-    p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V")
+    p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V "
+                   "(world units cubed; default: 1%% of the largest component's volume)")
+    p.add_argument("--decimate", type=int, metavar="FACES", help="decimate the filtered mesh to about FACES faces")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_stage("extract", issue=4))
 
     p = sub.add_parser("cage", help="build the tetrahedral cage around an extracted mesh, once")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--mesh", required=True, metavar="MESH.ply", help="mesh written by `extract`")
     p.add_argument("--out", required=True, metavar="CAGE.npz", help="cage: `vertices` (N,3) and `tets` (M,4)")
+    p.add_argument("--margin", type=float, metavar="M", help="distance from the object to the cage's boundary, world units "
+                   "(default 3%% of the mesh's diagonal; widened where the NeRF's density is still soft there)")
+    p.add_argument("--edge-length", type=float, metavar="L", help="target tet edge length, world units")
+    p.add_argument("--target-tets", type=int, metavar="N", help="approximate number of tets (ignored with --edge-length)")
+    p.add_argument("--threshold", type=float, metavar="T", help="surface density threshold used for extraction (default 10)")
     p.set_defaults(handler=_stage("cage", issue=4))
 
     return parser
