@@ -57,6 +57,30 @@ def test_training_beats_the_constant_colour_baseline(sphere):
     assert occ.tolist() == [True, False, False]
 
 
+def test_the_torch_path_that_cuda_runs_trains_too_and_marches_like_the_kernels(sphere, monkeypatch):
+    """Encoding, marching and Adam without the numba kernels (the code CUDA runs), on CPU."""
+    from blender_nerf_deform.engine import renderer
+
+    train = load_dataset(sphere[0])
+    torch.manual_seed(0)
+    model = NerfModel(NerfConfig(aabb=train.aabb.reshape(-1).tolist(), **SMALL))
+    model.occupancy.update(model.density, model.config.render_step, model.config.occ_threshold)
+    o, d = renderer.camera_rays(train.cameras[0])
+    fast = renderer.march(o, d, model.occupancy, model.config.render_step)
+    monkeypatch.setattr(renderer, "USE_CPU_KERNELS", False)
+    slow = renderer.march(o, d, model.occupancy, model.config.render_step)
+    # Same samples, but for the odd one on a cell face (the two round differently).
+    assert fast[0].numel() > 1000 and abs(fast[0].numel() - slow[0].numel()) <= 0.002 * fast[0].numel()
+    if fast[0].numel() == slow[0].numel():
+        assert torch.equal(fast[0], slow[0]) and torch.allclose(fast[1], slow[1], atol=1e-5)
+    model.encoding.use_kernels = False
+    trainer = Trainer(model, train, TrainOptions(steps=30, target_samples=1 << 12, occ_warmup_steps=16))
+    assert not trainer.lazy_table
+    first = trainer.step()["loss"]
+    trainer.train(progress=False)
+    assert trainer.last["loss"] < 0.5 * first
+
+
 def _cli(*args, check=True):
     proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
                           capture_output=True, text=True, timeout=600)

@@ -41,6 +41,10 @@ import torch
 
 from .occupancy import OccupancyGrid
 
+# March with the numba kernel on CPU when numba is installed (tests switch it off to run the torch
+# path, the one CUDA takes).
+USE_CPU_KERNELS = True
+
 SampleTransform = Callable[[torch.Tensor, torch.Tensor], tuple]
 
 
@@ -109,7 +113,7 @@ def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, s
     u = torch.rand(rays.shape[0], device=dev) if perturb else torch.full((rays.shape[0],), 0.5, device=dev)
     from .cpu_kernels import HAVE_NUMBA
 
-    if HAVE_NUMBA and dev.type == "cpu" and occupancy.mask.device.type == "cpu":
+    if USE_CPU_KERNELS and HAVE_NUMBA and dev.type == "cpu" and occupancy.mask.device.type == "cpu":
         from .cpu_kernels import march_cpu
 
         return march_cpu(origins[rays], dirs[rays], t0, t1, u, step, occupancy, rays)

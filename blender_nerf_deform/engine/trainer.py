@@ -146,6 +146,7 @@ class Trainer:
     def step(self) -> dict:
         """One optimisation step; returns loss, psnr (of the batch), rays and samples."""
         t_start = time.perf_counter()
+        self.model.encoding.fused_grad = self.lazy_table
         self.update_occupancy()
         m = self.model
         m.train()
@@ -243,6 +244,7 @@ class Trainer:
         finally:
             if bar is not None:
                 bar.close()
+            self.model.encoding.fused_grad = False  # back to ordinary .grad for whoever uses the model next
             if self.opt.checkpoint_path:
                 self.save(self.opt.checkpoint_path)
         return {"steps": self.step_count, "seconds": self.elapsed, **self.last}
