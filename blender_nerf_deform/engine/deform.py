@@ -189,10 +189,15 @@ class ArapDeformer:
         return U, it, step
 
     def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None, strict: bool = False) -> ArapResult:
-        """Iterate from the rest cage (or `initial`) until converged or `max_iter` iterations."""
+        """Iterate from `initial` (default: the linear blend of the handles' affines, a deterministic
+        start that is already right for rigid motions) until converged or `max_iter` iterations."""
         t0 = time.perf_counter()
         bc = self.constraints(transforms)
-        U = np.array(self.rest if initial is None else initial, dtype=np.float64)
+        if initial is None:
+            regions = self.handles + self.pins
+            mats = [_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins)
+            initial = linear_blend(self.rest, regions, mats)
+        U = np.array(initial, dtype=np.float64)
         U[self.b] = bc
         U, it, step = self._iterate(bc, U, max_iter, tol)
         res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0)
