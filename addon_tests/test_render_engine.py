@@ -152,3 +152,42 @@ def test_orthographic_camera_is_refused_by_the_render(addon, sphere_nerf):
     camera.data.type = "ORTHO"
     with pytest.raises(RuntimeError, match="'Camera' is orthographic"):
         bpy.ops.render.render()
+
+
+@pytest.mark.slow
+def test_moving_the_cage_in_cage_modifiers_mode_renders_like_moving_the_camera_back(addon, sphere_nerf, tmp_path):
+    bpy = addon
+    from mathutils import Matrix, Vector
+
+    from blender_nerf_deform.addon.cage_store import store_cage
+    from blender_nerf_deform.engine.cage import box_cage
+
+    ckpt, data = sphere_nerf
+    meta = json.loads((data / "transforms.json").read_text())
+    nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][4], meta["camera_angle_x"], meta["w"])
+    rest, tets = box_cage((4, 4, 4), lo=(-1.5, -1.5, -1.5), hi=(1.5, 1.5, 1.5))
+    cage = bpy.data.objects.new("Cage", bpy.data.meshes.new("Cage"))
+    store_cage(cage.data, rest, tets)
+    cage.nerf_deform.role = "CAGE"
+    bpy.context.scene.collection.objects.link(cage)
+    cage.parent = nerf
+    nerf.nerf_deform.cage, nerf.nerf_deform.deformation_mode = cage, "MODIFIERS"
+
+    def render(name):
+        bpy.context.scene.render.filepath = str(tmp_path / name)
+        assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+        return np.asarray(Image.open(tmp_path / name).convert("RGBA"), dtype=np.float64) / 255
+
+    still = render("still.png")
+    shift = Vector((0.3, -0.2, 0.25))
+    cage.location = shift
+    moved_content = render("moved_content.png")
+    cage.location = (0, 0, 0)
+    camera.matrix_world = Matrix.Translation(-shift) @ camera.matrix_world
+    moved_camera = render("moved_camera.png")
+
+    def psnr(a, b):
+        return 10 * np.log10(1 / np.mean((a - b) ** 2))
+
+    assert psnr(moved_content, moved_camera) >= 35  # 8-bit PNGs of a bent render vs a plain one
+    assert psnr(moved_content, still) < psnr(moved_content, moved_camera) - 10

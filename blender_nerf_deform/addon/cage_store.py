@@ -106,6 +106,14 @@ def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.
     return co.reshape(-1, 3).astype(np.float64)
 
 
+def deformed_cage_in_nerf_frame(nerf: bpy.types.Object, cage_object: bpy.types.Object, depsgraph) -> np.ndarray:
+    """The cage as its modifiers and its own placement deform it, in the NeRF's frame."""
+    local = evaluated_cage_vertices(cage_object, depsgraph)
+    nerf_eval, cage_eval = nerf.evaluated_get(depsgraph), cage_object.evaluated_get(depsgraph)
+    relative = np.linalg.inv(np.array(nerf_eval.matrix_world)) @ np.array(cage_eval.matrix_world)
+    return local @ relative[:3, :3].T + relative[:3, 3]
+
+
 def store_embedding(mesh: bpy.types.Mesh, tet_ids: np.ndarray, weights: np.ndarray) -> None:
     """Embed `mesh`'s vertices in the rest cage: vertex k = weights[k] · cage[tets[tet_ids[k]]]."""
     tet_ids = np.asarray(tet_ids)

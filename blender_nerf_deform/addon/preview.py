@@ -19,7 +19,7 @@ import bpy
 import numpy as np
 
 from ..engine.embedding import Embedding
-from .cage_store import CageDataError, evaluated_cage_vertices, has_cage, load_cage, load_embedding
+from .cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
 from .properties import settings
 
 PREVIEW_KEY = "NeRF Deform"
@@ -50,7 +50,7 @@ def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
         return None
     cage, surface = s.cage, s.surface
     _rest, tets = load_cage(cage.data)
-    deformed = evaluated_cage_vertices(cage, depsgraph)
+    deformed = deformed_cage_in_nerf_frame(nerf, cage, depsgraph)
     return surface_embedding(surface, tets).apply(deformed)
 
 

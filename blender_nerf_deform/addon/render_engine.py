@@ -19,8 +19,10 @@ import bpy
 import numpy as np
 
 from . import jobs
+from .cage_store import deformed_cage_in_nerf_frame, has_cage, load_cage
 from .camera import CameraError, pinhole_from_blender
 from .nerf_ops import checkpoint_path
+from .properties import handles_of
 from .worker_client import WorkerError
 
 NO_HIT_DEPTH = 1e10
@@ -57,7 +59,21 @@ def frame_request(depsgraph, nerf, downscale: int = 1) -> tuple[dict, dict, np.n
         "checkpoint": checkpoint_path(nerf),
         "camera": {**pinhole.as_dict(), "camera_to_world": c2w.tolist()},
     }
-    return params, {}, 1.0 / length_in_nerf
+    return params, deformation_arrays(nerf, depsgraph), 1.0 / length_in_nerf
+
+
+def deformation_arrays(nerf, depsgraph) -> dict:
+    """The rest cage and its pose at this frame, for ray bending; empty when there is nothing to bend."""
+    s = nerf.nerf_deform
+    if s.cage is None or not has_cage(s.cage.data):
+        return {}
+    if s.deformation_mode != "MODIFIERS":
+        if not handles_of(nerf):
+            return {}  # no handle: the rest pose
+        raise ValueError(f"rendering {nerf.name}'s handles ('{s.deformation_mode}' mode) needs the handle solver, which is not available yet")
+    rest, tets = load_cage(s.cage.data)
+    deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph)
+    return {"rest_vertices": rest, "tets": tets, "deformed_vertices": deformed}
 
 
 class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):

@@ -30,6 +30,26 @@ def cached_model(path: str, device: str = "auto"):
     return _models[key][1]
 
 
+_bends: dict[tuple, object] = {}
+
+
+def cached_bend(checkpoint: str, model, rest_vertices, tets):
+    """The ray bender of one rest cage, built once (its rest-cage locator) and reused every frame."""
+    import hashlib
+
+    import numpy as np
+
+    from .bending import CageBend
+
+    rest = np.ascontiguousarray(rest_vertices, dtype=np.float64)
+    tets = np.ascontiguousarray(tets, dtype=np.int64)
+    key = (os.path.abspath(checkpoint), hashlib.sha1(rest.tobytes() + tets.tobytes()).hexdigest())
+    if key not in _bends or _bends[key].model is not model:
+        _bends.clear()  # one cage at a time: a new cage frees the last one's memory
+        _bends[key] = CageBend(model, rest, tets)
+    return _bends[key]
+
+
 @op("load")
 def load(job: Job) -> dict:
     """Read a checkpoint: its bounds and configuration, for placing it in the scene."""
@@ -46,6 +66,7 @@ def render(job: Job) -> tuple[dict, dict]:
     """Render one frame of a NeRF from a pinhole camera given in the NeRF's frame.
 
     params: checkpoint, camera {width, height, fx, fy, cx, cy, camera_to_world}, device.
+    arrays (optional, for a deformed pose): rest_vertices (N,3), tets (M,4), deformed_vertices (N,3).
     Returns arrays `rgba` (H,W,4) float32 straight alpha, rows top-down, and `depth`
     (H,W) float32: expected distance along each unit ray, NeRF units, 0 where empty.
     """
@@ -54,9 +75,12 @@ def render(job: Job) -> tuple[dict, dict]:
     from .renderer import Camera, render_image
 
     params = job.params
-    if "deformed_vertices" in job.arrays:
-        raise EngineError("rendering a deformed cage is not implemented yet (ray bending, issue 5)")
     model = cached_model(params["checkpoint"], params.get("device", "auto"))
+    bending = {}
+    if "deformed_vertices" in job.arrays:
+        bend = cached_bend(params["checkpoint"], model, job.arrays["rest_vertices"], job.arrays["tets"])
+        bend.set_deformed(job.arrays["deformed_vertices"])
+        bending = {"sample_transform": bend.sample_transform, "occupancy": bend.occupancy}
     cam = params["camera"]
     camera = Camera(
         c2w=np.asarray(cam["camera_to_world"], dtype=np.float64),
@@ -67,8 +91,10 @@ def render(job: Job) -> tuple[dict, dict]:
         width=int(cam["width"]),
         height=int(cam["height"]),
     )
-    out = render_image(model, camera, progress=lambda done, total: job.progress(done / total, "rendering"))
+    out = render_image(model, camera, progress=lambda done, total: job.progress(done / total, "rendering"), **bending)
     stats = {k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")}
+    if bending:
+        stats.update(inverted_tets=bend.inversion.n_inverted, degenerate_tets=bend.inversion.n_degenerate)
     return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}
 
 
