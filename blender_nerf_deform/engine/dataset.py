@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import EngineError
-from .renderer import Camera
+from .camera import Camera
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")

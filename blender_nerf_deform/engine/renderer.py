@@ -33,12 +33,12 @@ Depth is the expected distance along the (unit) ray direction, divided by alpha;
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 import torch
 
+from .camera import Camera  # noqa: F401  (re-exported: renderer.Camera is part of the interface)
 from .occupancy import OccupancyGrid
 
 # March with the numba kernel on CPU when numba is installed (tests switch it off to run the torch
@@ -46,26 +46,6 @@ from .occupancy import OccupancyGrid
 USE_CPU_KERNELS = True
 
 SampleTransform = Callable[[torch.Tensor, torch.Tensor], tuple]
-
-
-@dataclass
-class Camera:
-    """A pinhole camera. c2w: camera-to-world 4x4 (Blender's matrix_world for Blender cameras)."""
-
-    c2w: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    name: str = ""
-
-    @classmethod
-    def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float, name: str = "") -> "Camera":
-        """NeRF-synthetic camera: square pixels, focal from the horizontal field of view, centred."""
-        f = 0.5 * width / math.tan(0.5 * camera_angle_x)
-        return cls(np.asarray(c2w, dtype=np.float64), f, f, width / 2.0, height / 2.0, int(width), int(height), name)
 
 
 def camera_rays(camera: Camera, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
