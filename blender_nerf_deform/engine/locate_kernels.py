@@ -5,8 +5,8 @@ materialised (pairs, 12) gathers and per-round compactions; on the project's
 2-core machine it runs at about igl's speed, not above it (BENCHMARKS.md).
 These kernels do the same uniform-grid method (cells list the tets that
 overlap them, pruned by the tets' face planes) with the per-tet and per-point
-work in registers: build in two parallel passes (count, fill) and a counting
-sort by cell; query parallel over points, testing each point's candidates
+work in registers: build in one parallel pass (bounding-box cells, pruned by the
+face planes) and a counting sort by cell; query parallel over points, testing each point's candidates
 until the first hit. Always float64.
 
 Used only for CPU tensors; CUDA takes the torch path, so the renderer runs the
@@ -90,20 +90,13 @@ if HAVE_NUMBA:
         return max(0, min(a, res[c] - 1)), max(0, min(b, res[c] - 1))
 
     @njit(parallel=True, cache=True)
-    def count_pairs(R, tlo, thi, glo, inv, res, eps, counts):
-        M = R.shape[0]
-        hx, hy, hz = 0.5 / inv[0], 0.5 / inv[1], 0.5 / inv[2]
-        for t in prange(M):
-            x0, x1 = _cell_range(tlo, thi, t, 0, glo, inv, res)
-            y0, y1 = _cell_range(tlo, thi, t, 1, glo, inv, res)
-            z0, z1 = _cell_range(tlo, thi, t, 2, glo, inv, res)
-            n = 0
-            single = x0 == x1 and y0 == y1 and z0 == z1
-            for k in range(z0, z1 + 1):
-                for j in range(y0, y1 + 1):
-                    for i in range(x0, x1 + 1):
-                        if single or _box_may_overlap(R, t, glo[0] + (i + 0.5) / inv[0], glo[1] + (j + 0.5) / inv[1], glo[2] + (k + 0.5) / inv[2], hx, hy, hz, eps):
-                            n += 1
+    def bbox_counts(tlo, thi, glo, inv, res, counts):
+        """Cells in each tet's bounding box: an upper bound of its pairs (the fill prunes some)."""
+        for t in prange(tlo.shape[0]):
+            n = 1
+            for c in range(3):
+                a, b = _cell_range(tlo, thi, t, c, glo, inv, res)
+                n *= b - a + 1
             counts[t] = n
 
     @njit(parallel=True, cache=True)
@@ -122,7 +115,9 @@ if HAVE_NUMBA:
                     for i in range(x0, x1 + 1):
                         if single or _box_may_overlap(R, t, glo[0] + (i + 0.5) / inv[0], glo[1] + (j + 0.5) / inv[1], glo[2] + (k + 0.5) / inv[2], hx, hy, hz, eps):
                             pair_cell[n] = (k * ry + j) * rx + i
-                            n += 1
+                        else:
+                            pair_cell[n] = -1  # pruned: the cell lies outside one of the tet's face planes
+                        n += 1
 
     @njit(cache=True)
     def bucket_by_cell(pair_cell, offsets, n_cells, cell_start, cell_tets, tet_order):
@@ -130,7 +125,8 @@ if HAVE_NUMBA:
         """
         counts = np.zeros(n_cells + 1, np.int64)
         for p in range(pair_cell.shape[0]):
-            counts[pair_cell[p] + 1] += 1
+            if pair_cell[p] >= 0:
+                counts[pair_cell[p] + 1] += 1
         for c in range(n_cells):
             counts[c + 1] += counts[c]
         cell_start[:] = counts
@@ -139,6 +135,8 @@ if HAVE_NUMBA:
             t = tet_order[q]
             for p in range(offsets[t], offsets[t + 1]):
                 c = pair_cell[p]
+                if c < 0:
+                    continue
                 cell_tets[counts[c]] = t
                 counts[c] += 1
 
@@ -195,13 +193,13 @@ class NumbaGrid:
         self.inv = self.res / extent
         self.n_cells = int(self.res.prod())
         counts = np.empty(M, np.int64)
-        count_pairs(self.R, tlo, thi, self.glo, self.inv, self.res, eps, counts)
+        bbox_counts(tlo, thi, self.glo, self.inv, self.res, counts)
         offsets = np.zeros(M + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
         pair_cell = np.empty(offsets[-1], np.int64)
         fill_pairs(self.R, tlo, thi, self.glo, self.inv, self.res, eps, offsets, pair_cell)
         self.cell_start = np.empty(self.n_cells + 1, np.int64)
-        self.cell_tets = np.empty(offsets[-1], np.int32)
+        self.cell_tets = np.empty(offsets[-1], np.int32)  # (over-allocated by the pruned pairs)
         # Tets keep their index order within a cell: cages from fTetWild number
         # neighbouring tets closely, so this order reads R with good locality
         # (ordering by size instead was measured slower: more cache misses).

@@ -123,7 +123,7 @@ class TetLocator:
             self.res = torch.as_tensor(self._grid.res)
             self.n_leaves = self._grid.n_cells
             self.cell_count = torch.from_numpy(np.diff(self._grid.cell_start))
-            self.n_pairs = int(len(self._grid.cell_tets))
+            self.n_pairs = int(self._grid.cell_start[-1])
             return
         self.R = barycentric_rows(V, T)
         if not torch.isfinite(self.R).all():
