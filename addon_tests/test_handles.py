@@ -26,9 +26,13 @@ def _select_in_edit_mode(bpy, surface, indices):
     bpy.context.view_layer.objects.active = surface
     if surface.mode == "EDIT":
         bpy.ops.object.mode_set(mode="OBJECT")
-    flags = np.zeros(len(surface.data.vertices), dtype=bool)
+    mesh = surface.data
+    flags = np.zeros(len(mesh.vertices), dtype=bool)
     flags[indices] = True
-    surface.data.vertices.foreach_set("select", flags)
+    mesh.vertices.foreach_set("select", flags)
+    # Edit Mode flushes face and edge selection to vertices: select none of them.
+    mesh.edges.foreach_set("select", np.zeros(len(mesh.edges), dtype=bool))
+    mesh.polygons.foreach_set("select", np.zeros(len(mesh.polygons), dtype=bool))
     bpy.ops.object.mode_set(mode="EDIT")
 
 

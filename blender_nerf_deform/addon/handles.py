@@ -38,14 +38,13 @@ def group_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
     )
 
 
-def _matrix_in_nerf(nerf: bpy.types.Object, obj: bpy.types.Object) -> Matrix:
-    return nerf.matrix_world.inverted_safe() @ obj.matrix_world
-
-
-def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object) -> np.ndarray:
-    """4x4 affine (NeRF frame) that takes the handle's region from rest to where the handle is now."""
+def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=None) -> np.ndarray:
+    """4x4 affine (NeRF frame) that takes the handle's region from rest to where the handle is,
+    as evaluated in `depsgraph` (a frame being rendered) or as the objects are now."""
+    if depsgraph is not None:
+        handle, nerf = handle.evaluated_get(depsgraph), nerf.evaluated_get(depsgraph)
     rest = Matrix(np.reshape(handle.nerf_deform.rest_matrix, (4, 4)).tolist())
-    return np.array(_matrix_in_nerf(nerf, handle) @ rest.inverted_safe())
+    return np.array(nerf.matrix_world.inverted_safe() @ handle.matrix_world @ rest.inverted_safe())
 
 
 def _surface_of(context) -> tuple[bpy.types.Object | None, bpy.types.Object | None]:
@@ -122,9 +121,11 @@ class NERFDEFORM_OT_add_handle(bpy.types.Operator):
 
         group = _add_to_group(surface, f"NeRF Handle {handle.name}", vertices)
         s = handle.nerf_deform
-        s.role, s.nerf, s.region = "HANDLE", nerf, group.name
-        context.view_layer.update()
-        s.rest_matrix = [x for row in _matrix_in_nerf(nerf, handle) for x in row]
+        # Parented with an identity inverse, its matrix in the NeRF's frame is its local matrix.
+        # Rest first, role last: a depsgraph update in between must not see a handle without its rest.
+        s.rest_matrix = [x for row in Matrix.Translation(centroid.tolist()) for x in row]
+        s.nerf, s.region = nerf, group.name
+        s.role = "HANDLE"
 
         # Ready to grab: the handle is the active, selected object with its gizmos.
         for obj in context.selected_objects:

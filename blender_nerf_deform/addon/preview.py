@@ -7,10 +7,12 @@ so the mesh's own vertices stay the rest shape (selections, re-embedding and
 new handles are made on it) while the viewport shows the deformed shape.
 
 Cage Modifiers mode needs no worker: the cage object's evaluated vertices
-(after its Armature, Lattice, ... modifiers) are the deformed cage. The
-handler runs after every depsgraph update and frame change, is guarded against
-re-entrancy (writing the shape key triggers another update), and skips NeRFs
-whose deformed cage did not change.
+(after its Armature, Lattice, ... modifiers) are the deformed cage. ARAP and
+affine-region modes ask the worker to solve for the handles' poses, without
+waiting: the answer updates the mesh when it arrives, and while a solve runs
+only the newest pose waits behind it. The handler runs after every depsgraph
+update and frame change, is guarded against re-entrancy (writing the shape key
+triggers another update), and skips NeRFs whose pose did not change.
 """
 
 from __future__ import annotations
@@ -19,13 +21,17 @@ import bpy
 import numpy as np
 
 from ..engine.embedding import Embedding
+from . import jobs
 from .cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
+from .deformation import AsyncSolver, solve_request
 from .properties import settings
+from .worker_client import WorkerError
 
 PREVIEW_KEY = "NeRF Deform"
 
 _updating = False
 _last_pose: dict[str, bytes] = {}
+_solvers: dict[str, AsyncSolver] = {}
 
 
 def surface_embedding(surface: bpy.types.Object, tets: np.ndarray) -> Embedding:
@@ -44,7 +50,7 @@ def show_deformed(surface: bpy.types.Object, positions: np.ndarray) -> None:
 
 
 def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
-    """Deformed surface of `nerf` now, or None when its mode needs the worker (ARAP, affine regions)."""
+    """Deformed surface of `nerf` in Cage Modifiers mode (None in the modes the worker solves)."""
     s = settings(nerf)
     if s.deformation_mode != "MODIFIERS":
         return None
@@ -52,6 +58,30 @@ def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
     _rest, tets = load_cage(cage.data)
     deformed = deformed_cage_in_nerf_frame(nerf, cage, depsgraph)
     return surface_embedding(surface, tets).apply(deformed)
+
+
+def _solve_in_background(nerf: bpy.types.Object, depsgraph) -> None:
+    """Send the handles' pose to the worker when it changed; the answer updates the preview."""
+    request = solve_request(nerf, depsgraph)
+    if request is None:
+        return
+    params, arrays = request
+    pose = repr((params["mode"], params["transforms"], arrays["handle_counts"].tolist(), len(arrays["pin_index"]))).encode()
+    if _last_pose.get(nerf.name) == pose:
+        return
+    _last_pose[nerf.name] = pose
+    name = nerf.name
+    solver = _solvers.get(name)
+    if solver is None:
+
+        def show(result, deformed, name=name):
+            target = bpy.data.objects.get(name)
+            if target is not None and _previewable(target):
+                _rest, tets = load_cage(settings(target).cage.data)
+                show_deformed(settings(target).surface, surface_embedding(settings(target).surface, tets).apply(deformed))
+
+        solver = _solvers[name] = AsyncSolver(jobs.worker(bpy.context), show)
+    solver.request(params, arrays)
 
 
 def _previewable(nerf: bpy.types.Object) -> bool:
@@ -76,10 +106,11 @@ def update_all(depsgraph) -> None:
                 continue
             try:
                 positions = preview_positions(nerf, depsgraph)
-            except CageDataError as error:
+                if positions is None:
+                    _solve_in_background(nerf, depsgraph)
+                    continue
+            except (CageDataError, WorkerError) as error:
                 print(f"NeRF Deform preview of {nerf.name}: {error}")
-                continue
-            if positions is None:
                 continue
             pose = positions.astype(np.float32).tobytes()
             if _last_pose.get(nerf.name) == pose:
@@ -110,3 +141,4 @@ def unregister():
         if fn in handlers:
             handlers.remove(fn)
     _last_pose.clear()
+    _solvers.clear()

@@ -22,7 +22,7 @@ from . import jobs
 from .cage_store import deformed_cage_in_nerf_frame, has_cage, load_cage
 from .camera import CameraError, pinhole_from_blender
 from .nerf_ops import checkpoint_path
-from .properties import handles_of
+from .deformation import solve_request
 from .worker_client import WorkerError
 
 NO_HIT_DEPTH = 1e10
@@ -67,12 +67,15 @@ def deformation_arrays(nerf, depsgraph) -> dict:
     s = nerf.nerf_deform
     if s.cage is None or not has_cage(s.cage.data):
         return {}
-    if s.deformation_mode != "MODIFIERS":
-        if not handles_of(nerf):
-            return {}  # no handle: the rest pose
-        raise ValueError(f"rendering {nerf.name}'s handles ('{s.deformation_mode}' mode) needs the handle solver, which is not available yet")
     rest, tets = load_cage(s.cage.data)
-    deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph)
+    if s.deformation_mode == "MODIFIERS":
+        deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph)
+    else:
+        request = solve_request(nerf, depsgraph)
+        if request is None:
+            return {}  # no handle: the rest pose
+        _stats, out = jobs.worker(bpy.context).call("solve", *request)
+        deformed = out["deformed_vertices"]
     return {"rest_vertices": rest, "tets": tets, "deformed_vertices": deformed}
 
 

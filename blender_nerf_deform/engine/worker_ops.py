@@ -133,3 +133,66 @@ def cage(job: Job) -> tuple[dict, dict]:
         "tet_ids": embedding.tet_ids,
         "weights": embedding.weights,
     }
+
+
+_deformers: dict[str, object] = {}
+
+
+def _split(index: "np.ndarray", counts: "np.ndarray") -> list:
+    import numpy as np
+
+    return np.split(np.asarray(index, dtype=np.int64), np.cumsum(counts)[:-1]) if len(counts) else []
+
+
+@op("solve")
+def solve(job: Job) -> tuple[dict, dict]:
+    """Deformed cage vertices for handle poses: ARAP (handles + pins) or affine regions.
+
+    params: mode "ARAP" | "AFFINE", transforms: one 4x4 per handle (NeRF frame).
+    arrays: rest_vertices, tets, tet_ids + weights (the surface's embedding),
+    handle_index + handle_counts (surface vertex indices of each handle's region,
+    concatenated), pin_index (surface vertices pinned).
+    The ARAP factorization is cached per cage and set of regions; every solve
+    starts from the linear blend of the handles, so a pose depends only on the
+    transforms given (viewport, F12 and batch renders agree).
+    """
+    import hashlib
+
+    import numpy as np
+
+    from .deform import ArapDeformer, affine_region, regions_to_cage
+    from .embedding import Embedding
+
+    a = job.arrays
+    rest = np.ascontiguousarray(a["rest_vertices"], dtype=np.float64)
+    tets = np.ascontiguousarray(a["tets"], dtype=np.int64)
+    transforms = [np.asarray(t, dtype=np.float64) for t in job.params["transforms"]]
+    handle_regions = _split(a["handle_index"], a["handle_counts"])
+    pin_index = np.asarray(a.get("pin_index", np.zeros(0, np.int64)), dtype=np.int64)
+    names = list(job.params.get("handle_names") or [f"handle {i}" for i in range(len(handle_regions))])
+    surface_regions = handle_regions + ([pin_index] if len(pin_index) else [])
+    names += ["the pinned region"] if len(pin_index) else []
+    tet_ids = np.asarray(a["tet_ids"], dtype=np.int64)
+    embedding = Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=np.asarray(a["weights"], dtype=np.float64), n_outside=0)
+
+    key = hashlib.sha1(b"".join(np.ascontiguousarray(x).tobytes() for x in (rest, tets, a["handle_index"], a["handle_counts"], pin_index))).hexdigest()
+    stats = {}
+    if job.params["mode"] == "AFFINE":
+        cage_regions = regions_to_cage(embedding, surface_regions, len(rest), names)
+        deformed = rest
+        for region, transform in zip(cage_regions, transforms):
+            deformed = affine_region(deformed, region, transform)
+    else:
+        deformer = _deformers.get(key)
+        if deformer is None:
+            job.progress(0.1, "ARAP precomputation")
+            cage_regions = regions_to_cage(embedding, surface_regions, len(rest), names)
+            n_handles = len(handle_regions)
+            deformer = ArapDeformer(rest, tets, cage_regions[:n_handles], cage_regions[n_handles:])
+            _deformers.clear()  # one set of handles at a time
+            _deformers[key] = deformer
+            stats["precompute_s"] = deformer.precompute_s
+        result = deformer.solve(transforms)
+        deformed = result.vertices
+        stats.update(iterations=result.iterations, converged=bool(result.converged), solve_s=result.seconds)
+    return stats, {"deformed_vertices": np.asarray(deformed, dtype=np.float64)}

@@ -1,0 +1,69 @@
+"""Handles drive the cage by ARAP in the worker: the live preview follows, and F12 renders the pose."""
+
+import time
+
+import numpy as np
+import pytest
+
+from test_handles import _select_in_edit_mode
+
+
+def _nerf_with_built_cage(bpy, ckpt):
+    assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
+    nerf = bpy.context.active_object
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=0.7)
+    surface = bpy.context.active_object
+    surface.nerf_deform.role = "SURFACE"
+    surface.parent = nerf
+    nerf.nerf_deform.surface = surface
+    bpy.context.view_layer.objects.active = nerf
+    assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
+    co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
+    surface.data.vertices.foreach_get("co", co)
+    return nerf, surface, co.reshape(-1, 3)
+
+
+def _preview(surface):
+    keys = surface.data.shape_keys
+    if keys is None or "NeRF Deform" not in keys.key_blocks:
+        return None
+    co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
+    keys.key_blocks["NeRF Deform"].data.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def _pump_until(condition, seconds=60):
+    """Run what Blender's timer runs on the main thread (the worker's answers) until `condition`."""
+    from blender_nerf_deform.addon import worker_client
+
+    deadline = time.monotonic() + seconds
+    while not condition() and time.monotonic() < deadline:
+        worker_client._drain_timer()
+        time.sleep(0.02)
+    return condition()
+
+
+@pytest.mark.slow
+def test_arap_preview_follows_a_moved_handle_and_keeps_the_pin(addon, sphere_nerf):
+    bpy = addon
+    ckpt, _ = sphere_nerf
+    nerf, surface, rest = _nerf_with_built_cage(bpy, ckpt)
+    top, bottom = np.flatnonzero(rest[:, 2] > 0.5), np.flatnonzero(rest[:, 2] < -0.5)
+    _select_in_edit_mode(bpy, surface, bottom)
+    assert bpy.ops.nerf_deform.pin_selection() == {"FINISHED"}
+    _select_in_edit_mode(bpy, surface, top)
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    handle = bpy.context.active_object
+
+    handle.location.z += 0.3
+    bpy.context.view_layer.update()
+
+    from blender_nerf_deform.addon import preview
+
+    solver = preview._solvers[nerf.name]
+    assert _pump_until(lambda: not solver.in_flight and solver.waiting is None)
+    moved = _preview(surface)
+    assert np.allclose(moved[top, 2] - rest[top, 2], 0.3, atol=0.02)
+    assert np.abs(moved[bottom] - rest[bottom]).max() < 0.02
+    middle = np.flatnonzero(np.abs(rest[:, 2]) < 0.1)
+    assert 0.02 < np.mean(moved[middle, 2] - rest[middle, 2]) < 0.28  # in between: as rigid as possible
