@@ -12,7 +12,7 @@ from PIL import Image
 from blender_nerf_deform.engine.dataset import load_dataset
 from blender_nerf_deform.engine.errors import EngineError
 
-from conftest import REPO
+from conftest import REPO, SHARED_DATASETS
 from nerf_fixtures import look_at, write_sphere_dataset
 
 
@@ -135,3 +135,17 @@ def test_cli_reports_bad_input_in_one_line_and_exit_2(tmp_path):
         assert proc.returncode == 2, proc.stderr
         last = proc.stderr.strip().splitlines()[-1]
         assert last.startswith("error: ") and needle in last, proc.stderr
+
+
+def test_lego_200_loads_with_its_documented_cameras_and_bounds():
+    lego = SHARED_DATASETS / "lego_200"
+    if not (lego / "transforms.json").is_file():
+        pytest.skip("../shared/datasets/lego_200 is not on this machine")
+    ds = load_dataset(lego, downscale=4)
+    assert len(ds) == 90 and ds.images.shape == (90, 50, 50, 4)
+    meta = json.loads((lego / "transforms.json").read_text())
+    cam = ds.cameras[0]
+    assert cam.fx == pytest.approx(0.5 * 200 / math.tan(0.5 * meta["camera_angle_x"]) / 4)
+    assert (cam.cx, cam.cy, cam.width, cam.height) == (25.0, 25.0, 50, 50)
+    np.testing.assert_array_equal(ds.aabb, [[-1.5] * 3, [1.5] * 3])
+    np.testing.assert_allclose(np.linalg.norm(cam.c2w[:3, 3]), 4.03, atol=0.05)  # cameras ~4 units out

@@ -38,9 +38,11 @@ def _constant_baseline_psnr(train, test) -> float:
 
 
 @pytest.mark.slow
-def test_training_beats_the_constant_colour_baseline(sphere):
-    train = load_dataset(sphere[0])
-    test = load_dataset(sphere[1])
+def test_training_beats_the_constant_colour_baseline(tmp_path):
+    # A small subset, downsampled: 30 views of 64x64 trained at 32x32 (--downscale 2).
+    train = load_dataset(write_sphere_dataset(tmp_path / "train", n_views=30, size=64, seed=0), downscale=2)
+    test = load_dataset(write_sphere_dataset(tmp_path / "test", n_views=5, size=64, seed=7), downscale=2)
+    assert train.images.shape == (30, 32, 32, 4)
     torch.manual_seed(0)
     model = NerfModel(NerfConfig(aabb=train.aabb.reshape(-1).tolist(), **SMALL))
     trainer = Trainer(model, train, TrainOptions(steps=250, target_samples=1 << 13, occ_warmup_steps=64))
@@ -51,7 +53,7 @@ def test_training_beats_the_constant_colour_baseline(sphere):
     print(f"constant colour {baseline:.2f} dB, NeRF {got:.2f} dB")
     assert baseline < 15.0
     assert got > baseline + 10.0, (got, baseline)
-    assert got > 24.0
+    assert got > 22.0
     # The occupancy grid learned the ball: far corners are empty, the centre is occupied.
     occ = model.occupancy.occupied(torch.tensor([[0.0, 0.0, 0.0], [1.4, 1.4, 1.4], [-1.4, 1.4, -1.4]]))
     assert occ.tolist() == [True, False, False]
