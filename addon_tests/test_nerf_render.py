@@ -182,3 +182,21 @@ def test_cuda_without_cuda_is_a_clear_error(tmp_path):
     save_nerf(_model(), tmp_path / "n.ckpt")
     with pytest.raises(EngineError, match="--device cuda"):
         load_nerf(tmp_path / "n.ckpt", device="cuda")
+
+
+def test_an_interrupted_save_leaves_the_previous_checkpoint_whole(tmp_path, monkeypatch):
+    m = _model()
+    path = tmp_path / "nerf.ckpt"
+    save_nerf(m, path)
+    before = path.read_bytes()
+
+    def torch_save_then_die(obj, f, *a, **k):
+        f.write(b"half a checkpoint")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", torch_save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        save_nerf(m, path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["nerf.ckpt"]
+    assert torch.equal(load_nerf(path, device="cpu").encoding.table, m.encoding.table)
