@@ -138,6 +138,12 @@ class HashEncoding(torch.nn.Module):
         return self.__dict__["_touched"]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Encode points x (N, 3) in [0, 1]^3 (clamped) → (N, n_levels * n_features), level-major.
+
+        CPU float32 with positions that need no gradient: the fused numba kernels
+        (gradient to the table only). Otherwise (CUDA, or x.requires_grad): torch,
+        differentiable in both the table and the positions.
+        """
         if self.use_kernels:
             from .cpu_kernels import HashEncodeCPU, kernels_apply
 
