@@ -168,9 +168,9 @@ def build_cage(
     kw = {}
     if edge_length is None and target_tets is not None:
         vol = abs(float(igl.volume(np.vstack([ev, ev.mean(0)]), np.c_[ef, np.full(len(ef), len(ev))]).sum()))
-        # Empirical: fTetWild's tets average about 1.4x a regular tet's volume
+        # Empirical: fTetWild's tets average about a regular tet's volume
         # (a^3 / (6 sqrt 2)) at its target edge length a (measured on our cages).
-        edge_length = (vol * 6 * np.sqrt(2) * 1.4 / max(int(target_tets), 1)) ** (1 / 3)
+        edge_length = (vol * 6 * np.sqrt(2) * 1.0 / max(int(target_tets), 1)) ** (1 / 3)
     if edge_length is not None:
         if not edge_length > 0:
             raise EngineError(f"cage edge length must be positive, got {edge_length}")
