@@ -116,10 +116,12 @@ class NerfModel(torch.nn.Module):
     def device(self) -> torch.device:
         return self.aabb.device
 
-    def to(self, *args, **kwargs):
-        super().to(*args, **kwargs)
-        self.occupancy.to(self.device)
-        return self
+    def _apply(self, fn, *args, **kwargs):
+        # .to(), .cuda(), .cpu() all come here: the occupancy grid (not a Module) follows the weights.
+        out = super()._apply(fn, *args, **kwargs)
+        if "occupancy" in self.__dict__:
+            self.occupancy.to(self.aabb.device)
+        return out
 
     def normalize(self, points: torch.Tensor) -> torch.Tensor:
         return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
