@@ -197,3 +197,13 @@ def test_the_embedding_module_is_pure_numpy():
     code = "import sys; sys.modules['torch'] = None; import blender_nerf_deform.engine.embedding, blender_nerf_deform.engine.mesh_io; print('ok')"
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
+
+
+def test_optional_decimation_keeps_a_closed_surface_of_the_requested_size():
+    from blender_nerf_deform.engine.cage import check_closed_mesh
+
+    res = extract_mesh(object_density, BOUNDS, resolution=64, decimate=2000, colour_fn=_colour)
+    assert 1500 <= len(res.faces) <= 2000
+    check_closed_mesh(res.vertices, res.faces)
+    assert res.colors.shape == res.vertices.shape
+    assert np.abs(np.linalg.norm(res.vertices, axis=1)).max() < 0.9
