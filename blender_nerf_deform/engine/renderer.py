@@ -75,8 +75,11 @@ def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, s
           near: float = 0.0, perturb: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Samples of rays in occupied cells: (ray index (S,), distance t (S,)), sorted by ray then t.
 
-    Each ray is clipped to the occupied box and sampled at t = t_near + (k + u) * step,
-    u = 0.5 (or uniform random per ray when `perturb`).
+    Each ray is clipped to the occupied box and sampled at t = (k + u) * step, k integer,
+    u = 0.5 (or uniform random per ray when `perturb`): the samples lie on a lattice
+    measured from the ray's origin, not from where it enters the box, so which
+    occupancy grid clips the ray (the NeRF's own, or one for a deformed space) does
+    not move them, and moving the scene rigidly is exactly moving the camera back.
     """
     n = origins.shape[0]
     dev = origins.device
@@ -91,6 +94,8 @@ def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, s
     rays = torch.nonzero(hit).flatten()
     t0, t1 = t0[rays], t1[rays]
     u = torch.rand(rays.shape[0], device=dev) if perturb else torch.full((rays.shape[0],), 0.5, device=dev)
+    # The first lattice point at or after the box entry: no sample lies outside the grid.
+    t0 = torch.ceil((t0 - u * step) / step) * step
     from .cpu_kernels import HAVE_NUMBA
 
     if USE_CPU_KERNELS and HAVE_NUMBA and dev.type == "cpu" and occupancy.mask.device.type == "cpu":
