@@ -1,9 +1,10 @@
 """Session fixtures for the add-on's tests: a small trained NeRF, made once per session.
 
 The NeRF is trained by the engine's own command line on the analytic sphere
-dataset of nerf_fixtures (no Blender, no ../shared), for a few steps: the
-add-on tests compare Blender's output with the engine's on the same
-checkpoint, so they need a real checkpoint, not a good one.
+dataset of nerf_fixtures (no Blender, no ../shared), for 300 steps (about 30 s
+on 2 cores): enough for a density with a surface to extract (peak density
+~150), while the render tests compare Blender's output with the engine's on
+the same checkpoint.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ def sphere_nerf(tmp_path_factory):
     run = root / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "blender_nerf_deform.engine", "train", "--data", str(data), "--out", str(run),
-         "--steps", "12", "--device", "cpu"],
+         "--steps", "300", "--device", "cpu"],
         cwd=REPO, capture_output=True, text=True,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -4,9 +4,9 @@ Properties, operators, panels and the RenderEngine live here; heavy work is
 sent to the engine in a worker process.
 """
 
-from . import cage_ops, handles, nerf_ops, panel, preferences, preview, preview_render, properties, render_engine, worker_client
+from . import cage_ops, extract_ops, handles, nerf_ops, panel, preferences, preview, preview_render, properties, render_engine, worker_client
 
-_modules = (preferences, properties, nerf_ops, cage_ops, handles, preview, render_engine, preview_render, panel)
+_modules = (preferences, properties, nerf_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel)
 
 
 def register():

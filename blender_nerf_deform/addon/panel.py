@@ -22,7 +22,14 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         s = nerf.nerf_deform
         layout.label(text=nerf.name, icon="OUTLINER_OB_EMPTY")
         layout.prop(s, "checkpoint")
-        layout.operator("nerf_deform.build_cage", icon="MESH_ICOSPHERE")
+        box = layout.box()
+        box.label(text="Mesh and Cage")
+        col = box.column(align=True)
+        col.prop(s, "threshold")
+        col.prop(s, "resolution")
+        col.prop(s, "min_volume")
+        box.operator("nerf_deform.extract_mesh", icon="MESH_DATA")
+        box.operator("nerf_deform.build_cage", icon="MESH_ICOSPHERE")
         layout.prop(s, "deformation_mode")
 
         row = layout.row(align=True)

@@ -196,3 +196,30 @@ def solve(job: Job) -> tuple[dict, dict]:
         deformed = result.vertices
         stats.update(iterations=result.iterations, converged=bool(result.converged), solve_s=result.seconds)
     return stats, {"deformed_vertices": np.asarray(deformed, dtype=np.float64)}
+
+
+@op("extract")
+def extract(job: Job) -> tuple[dict, dict]:
+    """The NeRF's surface: marching cubes of its density, floaters dropped, vertex colours.
+
+    params: checkpoint, threshold, resolution, min_volume (None or 0: automatic).
+    Returns arrays vertices (N,3), faces (F,3), colors (N,3), NeRF frame; result has the report.
+    """
+    import numpy as np
+
+    from .extract import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD, colour_fn_of, density_fn_of, extract_mesh
+
+    p = job.params
+    model = cached_model(p["checkpoint"], p.get("device", "auto"))
+    job.progress(0.05, "sampling the density grid")
+    res = extract_mesh(
+        density_fn_of(model),
+        model.aabb.detach().cpu().numpy().reshape(2, 3),
+        resolution=int(p.get("resolution") or DEFAULT_RESOLUTION),
+        threshold=float(p["threshold"]) if p.get("threshold") is not None else DEFAULT_THRESHOLD,
+        min_volume=float(p["min_volume"]) if p.get("min_volume") else None,
+        colour_fn=colour_fn_of(model),
+    )
+    colors = res.colors if res.colors is not None else np.full((len(res.vertices), 3), 0.8)
+    summary = {"report": res.report(), "kept": len(res.kept), "dropped": len(res.dropped), "timings": res.timings}
+    return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32)}
