@@ -48,3 +48,12 @@ def test_build_cage_before_extract_mesh_says_what_to_do(addon):
     with pytest.raises(RuntimeError, match="NeRF has no extracted mesh yet: run Extract Mesh first"):
         bpy.ops.nerf_deform.build_cage()
     assert nerf.nerf_deform.cage is None and len(bpy.data.objects) == 1
+
+
+def test_building_a_cage_writes_nothing_into_the_working_directory(tmp_path, monkeypatch):
+    from blender_nerf_deform.engine.cage import box_cage, boundary_faces, build_cage
+
+    v, t = box_cage((2, 2, 2))
+    monkeypatch.chdir(tmp_path)
+    build_cage(v, boundary_faces(t), margin=0.05)
+    assert list(tmp_path.iterdir()) == []  # fTetWild's scratch file went to a temporary folder

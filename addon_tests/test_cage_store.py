@@ -19,9 +19,9 @@ def _enclosed_volume(vertices, faces):
 
 
 def test_boundary_of_a_tetrahedralized_cube_is_its_12_outward_triangles():
-    from blender_nerf_deform.addon.cage_store import boundary_triangles
+    from blender_nerf_deform.engine.barycentric import boundary_faces
 
-    faces = boundary_triangles(CUBE, CUBE_TETS)
+    faces = boundary_faces(CUBE_TETS, CUBE)
     assert len(faces) == 12
     assert _enclosed_volume(CUBE, faces) == pytest.approx(1.0)  # outward winding gives +volume
     # No interior face: every boundary triangle lies on a face of the cube.

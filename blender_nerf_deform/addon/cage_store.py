@@ -20,6 +20,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ..engine.barycentric import boundary_faces
+
 REST_KEY = "nerf_deform_rest_vertices"
 TETS_KEY = "nerf_deform_tets"
 EMBED_TET_KEY = "nerf_deform_embed_tet"
@@ -31,24 +33,6 @@ class CageDataError(ValueError):
     """Stored cage or embedding data is missing or no longer matches its mesh."""
 
 
-def boundary_triangles(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """(K,3) boundary faces of a tet mesh (faces used by exactly one tet), wound outward."""
-    tets = np.asarray(tets, dtype=np.int64)
-    # Face opposite each vertex; wound outward for a positively oriented tet.
-    faces = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
-    opposite = np.concatenate([tets[:, 0], tets[:, 1], tets[:, 2], tets[:, 3]])
-    key = np.sort(faces, axis=1)
-    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
-    once = first[counts == 1]
-    faces, opposite = faces[once], opposite[once]
-    # Wind each face away from its tet's fourth vertex, whatever the tet's orientation.
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    normal = np.cross(b - a, c - a)
-    inward = np.einsum("ij,ij->i", normal, vertices[opposite] - a) > 0
-    faces[inward] = faces[inward][:, [0, 2, 1]]
-    return faces
-
-
 def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray) -> None:
     """Write the rest cage into `cage_mesh` (replacing its geometry) and its exact data as ID properties."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -57,7 +41,7 @@ def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray
         raise CageDataError(f"cage must be vertices (N,3) and tets (M,4), got {vertices.shape} and {tets.shape}")
     if tets.size and (tets.min() < 0 or tets.max() >= len(vertices)):
         raise CageDataError(f"cage tets index vertices outside 0..{len(vertices) - 1}")
-    faces = boundary_triangles(vertices, tets)
+    faces = boundary_faces(tets, vertices)
     cage_mesh.clear_geometry()
     cage_mesh.vertices.add(len(vertices))
     cage_mesh.vertices.foreach_set("co", vertices.astype(np.float32).ravel())

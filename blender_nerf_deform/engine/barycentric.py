@@ -131,3 +131,21 @@ def inversion_report(rest_vertices: np.ndarray, deformed_vertices: np.ndarray, t
     det = signed_volumes(deformed_vertices, tets) / signed_volumes(rest_vertices, tets)
     det = np.nan_to_num(det, nan=0.0, posinf=0.0, neginf=0.0)
     return InversionReport(det=det, inverted=np.flatnonzero(det < -tol), degenerate=np.flatnonzero(np.abs(det) <= tol))
+
+
+def boundary_faces(tets: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+    """(F, 3) faces used by exactly one tet, wound outward: for positively oriented tets as
+    given, or, with `vertices`, away from each face's own tet whatever its orientation."""
+    tets = np.asarray(tets, dtype=np.int64)
+    # The face opposite each vertex, ordered so its normal points out of a positive tet.
+    faces = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    once = counts[inverse.ravel()] == 1
+    faces = faces[once]
+    if vertices is not None:
+        opposite = np.concatenate([tets[:, 0], tets[:, 1], tets[:, 2], tets[:, 3]])[once]
+        v = np.asarray(vertices, dtype=np.float64)
+        a, b, c = (v[faces[:, k]] for k in range(3))
+        inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), v[opposite] - a) > 0
+        faces[inward] = faces[inward][:, [0, 2, 1]]
+    return faces

@@ -22,12 +22,15 @@ cell), used by the tests and the benchmarks.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import tempfile
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .barycentric import signed_volumes
+from .barycentric import boundary_faces, signed_volumes  # noqa: F401  (boundary_faces is part of this module's API)
 from .errors import EngineError
 
 DEFAULT_MARGIN_FRACTION = 0.03  # of the mesh's bounding-box diagonal, when no margin is given
@@ -62,16 +65,6 @@ def orient_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     neg = signed_volumes(vertices, tets) < 0
     tets[neg] = tets[neg][:, [0, 2, 1, 3]]
     return tets
-
-
-def boundary_faces(tets: np.ndarray) -> np.ndarray:
-    """(F, 3) faces used by exactly one tet, oriented outwards for positively oriented tets."""
-    tets = np.asarray(tets, dtype=np.int64)
-    # Faces opposite vertex 0..3, each ordered so its normal points out of a positive tet.
-    f = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
-    key = np.sort(f, axis=1)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return f[counts[inv.ravel()] == 1]
 
 
 def check_closed_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") -> None:
@@ -128,6 +121,19 @@ def envelope(vertices: np.ndarray, faces: np.ndarray, offset: float, max_cells: 
     return ev, ef.astype(np.int64), pitch
 
 
+@contextlib.contextmanager
+def _scratch_directory():
+    """fTetWild writes a scratch file (__tracked_surface.stl) into the working directory:
+    run it in a temporary one, so nothing lands in the user's folder (or an extension's)."""
+    previous = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="nerf_deform_tetwild_") as scratch:
+        os.chdir(scratch)
+        try:
+            yield
+        finally:
+            os.chdir(previous)
+
+
 def build_cage(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -176,9 +182,10 @@ def build_cage(
             raise EngineError(f"cage edge length must be positive, got {edge_length}")
         kw["edge_length_abs"] = float(edge_length)
     t0 = time.perf_counter()
-    CV, CT = pytetwild.tetrahedralize(
-        ev, ef.astype(np.int32), epsilon=eps_abs / ediag, optimize=optimize, num_threads=num_threads, quiet=True, **kw
-    )
+    with _scratch_directory():
+        CV, CT = pytetwild.tetrahedralize(
+            ev, ef.astype(np.int32), epsilon=eps_abs / ediag, optimize=optimize, num_threads=num_threads, quiet=True, **kw
+        )
     timings["tetrahedralize_s"] = time.perf_counter() - t0
     CT = np.asarray(CT, dtype=np.int64)
     if len(CT) == 0:
