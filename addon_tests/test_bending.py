@@ -79,3 +79,44 @@ def test_degenerate_and_inverted_tets_give_finite_maps_and_are_counted(scene):
     pts = torch.as_tensor(np.random.default_rng(0).uniform(-1.5, 1.5, (5000, 3)), dtype=torch.float32)
     p, d_out, keep = bend.sample_transform(pts, torch.nn.functional.normalize(pts, dim=1))
     assert torch.isfinite(p).all() and torch.isfinite(d_out).all()
+
+
+def _cli(*args):
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
+                          capture_output=True, text=True)
+
+
+@pytest.mark.slow
+def test_cli_render_through_a_cage(sphere_nerf, tmp_path):
+    from PIL import Image
+
+    from blender_nerf_deform.engine.mesh_io import save_cage
+
+    ckpt, data = sphere_nerf
+    meta = json.loads((data / "transforms.json").read_text())
+    (tmp_path / "cams.json").write_text(json.dumps({**meta, "frames": meta["frames"][:1]}))
+    rest, tets = box_cage((3, 3, 3), lo=(-1.5, -1.5, -1.5), hi=(1.5, 1.5, 1.5))
+    save_cage(tmp_path / "cage.npz", rest, tets)
+    np.save(tmp_path / "rest.npy", rest)
+    np.save(tmp_path / "lifted.npy", rest + [0.0, 0.0, 0.4])
+    name = meta["frames"][0]["file_path"].rsplit("/", 1)[-1].rsplit(".", 1)[0]
+
+    def render(*extra):
+        out = tmp_path / f"out{len(list(tmp_path.iterdir()))}"
+        proc = _cli("render", "--nerf", ckpt, "--cameras", tmp_path / "cams.json", "--out", out, *extra)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return np.asarray(Image.open(out / f"{name}.png"), dtype=np.float64) / 255
+
+    plain = render()
+    assert _psnr(render("--cage", tmp_path / "cage.npz", "--deformed", tmp_path / "rest.npy"), plain) >= 45
+    assert _psnr(render("--cage", tmp_path / "cage.npz", "--deformed", tmp_path / "lifted.npy"), plain) < 30
+
+    np.save(tmp_path / "wrong.npy", rest[:5])
+    proc = _cli("render", "--nerf", ckpt, "--cameras", tmp_path / "cams.json", "--out", tmp_path / "bad",
+                "--cage", tmp_path / "cage.npz", "--deformed", tmp_path / "wrong.npy")
+    assert proc.returncode == 2 and "wrong.npy: deformed vertices must be a finite (64, 3) array" in proc.stderr

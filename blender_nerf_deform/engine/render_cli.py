@@ -7,9 +7,9 @@
 cameras are read (images need not exist when `w` and `h` are given). Each PNG
 is written to a temporary file and renamed.
 
-Ray bending (--cage/--deformed) plugs in through `bending_transform`, which must
-return the renderer's `sample_transform` and the deformed-space occupancy grid;
-it lands with the ray-bending issue (5).
+With --cage/--deformed every frame is ray-bent through the cage posed by V.npy
+(engine/bending.py): `bending_transform` returns the renderer's
+`sample_transform` and the deformed space's occupancy grid.
 """
 
 from __future__ import annotations
@@ -27,8 +27,26 @@ from .renderer import render_image
 
 
 def bending_transform(model, cage_path, deformed_path):
-    """(sample_transform, occupancy) for rendering through a deformed cage. Hook for issue 5."""
-    raise EngineError("ray bending (--cage/--deformed) is not implemented yet (tracked in issue 5)")
+    """(sample_transform, occupancy) for rendering through the cage at `cage_path` posed by `deformed_path`."""
+    from .bending import CageBend
+    from .mesh_io import load_cage
+
+    cage = load_cage(cage_path)
+    try:
+        deformed = np.load(deformed_path, allow_pickle=False)
+    except FileNotFoundError:
+        raise EngineError(f"deformed vertices {deformed_path} do not exist") from None
+    except (ValueError, OSError) as exc:
+        raise EngineError(f"cannot read deformed vertices {deformed_path}: {exc}") from None
+    if deformed.shape != cage["vertices"].shape or not np.isfinite(deformed).all():
+        raise EngineError(
+            f"{deformed_path}: deformed vertices must be a finite {cage['vertices'].shape} array, the cage's shape "
+            f"(same vertices, same order), got {deformed.shape}"
+        )
+    bend = CageBend(model, cage["vertices"], cage["tets"]).set_deformed(deformed)
+    if not bend.inversion.ok:
+        print(f"{deformed_path}: {bend.inversion.summary()}")
+    return bend.sample_transform, bend.occupancy
 
 
 def write_png_rgba(path, rgba: np.ndarray) -> None:
