@@ -33,6 +33,18 @@ class CageDataError(ValueError):
     """Stored cage or embedding data is missing or no longer matches its mesh."""
 
 
+def set_triangles(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Replace a mesh's geometry with vertices (N,3) and triangles (F,3), in bulk."""
+    mesh.clear_geometry()
+    mesh.vertices.add(len(vertices))
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(vertices, dtype=np.float32).ravel())
+    mesh.loops.add(3 * len(faces))
+    mesh.loops.foreach_set("vertex_index", np.ascontiguousarray(faces, dtype=np.int32).ravel())
+    mesh.polygons.add(len(faces))
+    mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(faces), 3, dtype=np.int32))
+    mesh.update(calc_edges=True)
+
+
 def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray) -> None:
     """Write the rest cage into `cage_mesh` (replacing its geometry) and its exact data as ID properties."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -41,15 +53,7 @@ def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray
         raise CageDataError(f"cage must be vertices (N,3) and tets (M,4), got {vertices.shape} and {tets.shape}")
     if tets.size and (tets.min() < 0 or tets.max() >= len(vertices)):
         raise CageDataError(f"cage tets index vertices outside 0..{len(vertices) - 1}")
-    faces = boundary_faces(tets, vertices)
-    cage_mesh.clear_geometry()
-    cage_mesh.vertices.add(len(vertices))
-    cage_mesh.vertices.foreach_set("co", vertices.astype(np.float32).ravel())
-    cage_mesh.loops.add(3 * len(faces))
-    cage_mesh.loops.foreach_set("vertex_index", faces.astype(np.int32).ravel())
-    cage_mesh.polygons.add(len(faces))
-    cage_mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(faces), 3, dtype=np.int32))
-    cage_mesh.update(calc_edges=True)
+    set_triangles(cage_mesh, vertices, boundary_faces(tets, vertices))
     cage_mesh[REST_KEY] = vertices.ravel()
     cage_mesh[TETS_KEY] = tets.astype(np.int32).ravel()
 

@@ -5,26 +5,20 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from .cage_store import set_triangles
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .properties import handles_of, owning_nerf
+from .render_engine import srgb_to_linear
 
 COLOR_ATTRIBUTE = "NeRF Color"
 
 
 def fill_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
-    mesh.clear_geometry()
-    mesh.vertices.add(len(vertices))
-    mesh.vertices.foreach_set("co", np.ascontiguousarray(vertices, dtype=np.float32).ravel())
-    mesh.loops.add(3 * len(faces))
-    mesh.loops.foreach_set("vertex_index", np.ascontiguousarray(faces, dtype=np.int32).ravel())
-    mesh.polygons.add(len(faces))
-    mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(faces), 3, dtype=np.int32))
-    mesh.update(calc_edges=True)
+    set_triangles(mesh, vertices, faces)
     attribute = mesh.color_attributes.get(COLOR_ATTRIBUTE) or mesh.color_attributes.new(COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
     # The NeRF's colours are display (sRGB) values; colour attributes hold scene-linear ones.
-    srgb = np.clip(colors, 0.0, 1.0)
-    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    linear = srgb_to_linear(np.clip(colors, 0.0, 1.0))
     attribute.data.foreach_set("color", np.c_[linear, np.ones(len(linear))].astype(np.float32).ravel())
     mesh.color_attributes.active_color = attribute
 

@@ -78,12 +78,11 @@ def _add_to_group(surface: bpy.types.Object, group_name: str, vertices: np.ndarr
     return group
 
 
-class NERFDEFORM_OT_add_handle(bpy.types.Operator):
-    """Make a handle (an Empty at their centroid) that moves the selected vertices of the extracted mesh"""
+class _SelectionOperator:
+    """Operators on the vertices selected in Edit Mode on a NeRF's extracted mesh."""
 
-    bl_idname = "nerf_deform.add_handle"
-    bl_label = "Add Handle"
     bl_options = {"REGISTER", "UNDO"}
+    _purpose = ""  # what the selection is for, in the error message
 
     @classmethod
     def poll(cls, context):
@@ -93,12 +92,27 @@ class NERFDEFORM_OT_add_handle(bpy.types.Operator):
             return False
         return nerf is not None
 
-    def execute(self, context):
+    def selection(self, context):
+        """(surface, nerf, selected vertex indices), or None after reporting an empty selection."""
         surface, nerf = _surface_of(context)
         vertices = selected_vertices(surface)
         if len(vertices) == 0:
-            self.report({"ERROR"}, "No vertices selected: select the region to move on the extracted mesh in Edit Mode")
+            self.report({"ERROR"}, f"No vertices selected: select the region to {self._purpose} on the extracted mesh in Edit Mode")
+            return None
+        return surface, nerf, vertices
+
+
+class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
+    """Make a handle (an Empty at their centroid) that moves the selected vertices of the extracted mesh"""
+
+    bl_idname = "nerf_deform.add_handle"
+    bl_label = "Add Handle"
+    _purpose = "move"
+
+    def execute(self, context):
+        if (selection := self.selection(context)) is None:
             return {"CANCELLED"}
+        surface, nerf, vertices = selection
         if (other := _overlaps(surface, nerf, vertices)) is not None:
             self.report({"ERROR"}, f"The selection overlaps {other}: deselect those vertices or remove that region first")
             return {"CANCELLED"}
@@ -136,27 +150,17 @@ class NERFDEFORM_OT_add_handle(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NERFDEFORM_OT_pin_selection(bpy.types.Operator):
+class NERFDEFORM_OT_pin_selection(_SelectionOperator, bpy.types.Operator):
     """Pin the selected vertices of the extracted mesh: they stay where they are"""
 
     bl_idname = "nerf_deform.pin_selection"
     bl_label = "Pin Selection"
-    bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        surface, nerf = _surface_of(context)
-        if surface is None or surface.mode != "EDIT":
-            cls.poll_message_set("Select vertices of a NeRF's extracted mesh in Edit Mode")
-            return False
-        return nerf is not None
+    _purpose = "pin"
 
     def execute(self, context):
-        surface, nerf = _surface_of(context)
-        vertices = selected_vertices(surface)
-        if len(vertices) == 0:
-            self.report({"ERROR"}, "No vertices selected: select the region to pin on the extracted mesh in Edit Mode")
+        if (selection := self.selection(context)) is None:
             return {"CANCELLED"}
+        surface, nerf, vertices = selection
         if (other := _overlaps(surface, nerf, vertices, skip_group=PIN_GROUP)) is not None:
             self.report({"ERROR"}, f"The selection overlaps {other}: a vertex cannot be both pinned and moved")
             return {"CANCELLED"}
