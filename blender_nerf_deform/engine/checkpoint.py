@@ -14,15 +14,14 @@ target, so an interrupted run never leaves a broken checkpoint.
 
 from __future__ import annotations
 
-import os
 import pickle
-import tempfile
 import zipfile
 from pathlib import Path
 
 import torch
 
 from .errors import EngineError
+from .files import atomic_write
 from .model import NerfConfig, NerfModel, resolve_device
 
 FORMAT = "blender_nerf_deform.nerf"
@@ -43,19 +42,7 @@ def save_nerf(model: NerfModel, path, trainer_state: dict | None = None) -> None
     }
     if trainer_state is not None:
         payload["trainer"] = trainer_state
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write(path, lambda f: torch.save(payload, f))
 
 
 def read_checkpoint(path) -> dict:

@@ -12,30 +12,12 @@ never leaves a half-written file under the target name.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import EngineError
-
-
-def _atomic_write(path: str | os.PathLike, write) -> None:
-    path = Path(path)
-    if not path.parent.exists():
-        raise EngineError(f"cannot write {path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+from .files import atomic_write
 
 
 def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
@@ -68,7 +50,7 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         f.write(vrec.tobytes())
         f.write(frec.tobytes())
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 _PLY_TYPES = {
@@ -164,7 +146,7 @@ def save_cage(path, vertices: np.ndarray, tets: np.ndarray, **extra) -> None:
     def write(f):
         np.savez(f, **arrays)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:

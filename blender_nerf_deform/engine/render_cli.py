@@ -14,8 +14,6 @@ With --cage/--deformed every frame is ray-bent through the cage posed by V.npy
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,7 @@ import numpy as np
 from .checkpoint import load_nerf
 from .dataset import load_dataset
 from .errors import EngineError
+from .files import atomic_write
 from .renderer import render_image
 
 
@@ -53,19 +52,8 @@ def write_png_rgba(path, rgba: np.ndarray) -> None:
     """Write an (H, W, 4) float straight-alpha image as an 8-bit RGBA PNG, atomically."""
     from PIL import Image
 
-    path = Path(path)
     arr = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.png", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(arr, mode="RGBA").save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write(path, lambda f: Image.fromarray(arr, mode="RGBA").save(f, format="PNG"))
 
 
 def main(args) -> int:
