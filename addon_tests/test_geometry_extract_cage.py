@@ -207,3 +207,22 @@ def test_optional_decimation_keeps_a_closed_surface_of_the_requested_size():
     check_closed_mesh(res.vertices, res.faces)
     assert res.colors.shape == res.vertices.shape
     assert np.abs(np.linalg.norm(res.vertices, axis=1)).max() < 0.9
+
+
+def test_density_exactly_at_the_threshold_on_grid_points_still_gives_a_closed_manifold_mesh():
+    """Marching cubes makes zero-area triangles and coincident vertices where grid samples equal the
+    threshold; extraction must weld them so the cage builder gets a closed manifold mesh."""
+    from blender_nerf_deform.engine.cage import check_closed_mesh
+    from blender_nerf_deform.engine.extract import extract_mesh
+
+    n = 24
+    axis = np.linspace(-1, 1, n)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    # A blocky field: every sample is 0, 10 or 20, so many equal the threshold 10 exactly.
+    grid = np.where(np.abs(x) + np.abs(y) + np.abs(z) < 1.2, 20.0, 0.0)
+    grid[(np.abs(x) + np.abs(y) + np.abs(z) >= 1.2) & (np.abs(x) + np.abs(y) + np.abs(z) < 1.45)] = 10.0
+    res = extract_mesh(None, [[-1, -1, -1], [1, 1, 1]], threshold=10.0, grid=grid)
+    check_closed_mesh(res.vertices, res.faces)
+    a = np.linalg.norm(np.cross(res.vertices[res.faces[:, 1]] - res.vertices[res.faces[:, 0]],
+                                res.vertices[res.faces[:, 2]] - res.vertices[res.faces[:, 0]]), axis=1)
+    assert (a > 0).all()

@@ -186,8 +186,7 @@ def test_moving_the_cage_in_cage_modifiers_mode_renders_like_moving_the_camera_b
     camera.matrix_world = Matrix.Translation(-shift) @ camera.matrix_world
     moved_camera = render("moved_camera.png")
 
-    def psnr(a, b):
-        return 10 * np.log10(1 / np.mean((a - b) ** 2))
+    from test_bending import _psnr
 
-    assert psnr(moved_content, moved_camera) >= 35  # 8-bit PNGs of a bent render vs a plain one
-    assert psnr(moved_content, still) < psnr(moved_content, moved_camera) - 10
+    assert _psnr(moved_content, moved_camera) >= 35  # 8-bit PNGs of a bent render vs a plain one
+    assert _psnr(moved_content, still) < _psnr(moved_content, moved_camera) - 10

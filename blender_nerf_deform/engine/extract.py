@@ -127,6 +127,18 @@ def component_volumes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
     return labels, np.bincount(labels, weights=vol_face)
 
 
+def _weld(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge coincident vertices and drop zero-area triangles. Where the density equals the
+    threshold exactly at a grid point, marching cubes makes both, and together they leave edges
+    shared by more than two faces: a non-manifold mesh the cage builder rightly refuses."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(verts, faces, process=True, validate=False)
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.remove_unreferenced_vertices()
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
 def extract_mesh(
     density_fn: DensityFn,
     bounds,
@@ -159,8 +171,7 @@ def extract_mesh(
     empty = min(float(grid.min()), threshold) - 1.0
     padded = np.pad(grid, 1, mode="constant", constant_values=empty)
     verts, faces, _, _ = marching_cubes(padded, level=threshold, spacing=tuple(spacing))
-    verts = verts.astype(np.float64) + (b[0] - spacing)
-    faces = faces.astype(np.int64)
+    verts, faces = _weld(verts.astype(np.float64) + (b[0] - spacing), faces.astype(np.int64))
     timings["marching_cubes_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
