@@ -18,10 +18,17 @@ from . import preferences
 from .worker_client import WorkerClient, WorkerError, detect_python, get_client
 
 
+_detected: dict[str, str | None] = {}
+
+
 def worker(context) -> WorkerClient:
-    """The shared worker, on the preferred Python or the first one found with torch."""
+    """The shared worker, on the preferred Python or the first one found with torch (looked for
+    once per preference value: detection starts interpreters)."""
     preferred = preferences.worker_python(context)
-    python = detect_python(bpy.path.abspath(preferred) if preferred else "")
+    preferred = bpy.path.abspath(preferred) if preferred else ""
+    if _detected.get(preferred) is None:
+        _detected[preferred] = detect_python(preferred)
+    python = _detected[preferred]
     if python is None:
         raise WorkerError(
             "no Python with torch found: set NeRF Deform's Worker Python preference "
@@ -59,7 +66,7 @@ class WorkerOperator:
     def invoke(self, context, event):
         try:
             op, params, arrays = self.request(context)
-            client = worker(context)
+            client = self._client = worker(context)
             self._state = {"done": None, "progress": 0.0, "message": ""}
             self._job_id = client.submit(
                 op,
@@ -84,7 +91,7 @@ class WorkerOperator:
         context.workspace.status_text_set(None)
 
     def modal(self, context, event):
-        client = worker(context)
+        client = self._client
         if event.type == "ESC":
             client.cancel(self._job_id)
         if event.type != "TIMER":
