@@ -14,7 +14,7 @@ import bmesh  # noqa: I001
 import numpy as np
 from mathutils import Matrix
 
-from .properties import PIN_GROUP, handles_of, owning_nerf
+from .properties import PIN_GROUP, handles_of, owning_nerf, select_only
 
 
 def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
@@ -141,11 +141,7 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
         s.nerf, s.region = nerf, group.name
         s.role = "HANDLE"
 
-        # Ready to grab: the handle is the active, selected object with its gizmos.
-        for obj in context.selected_objects:
-            obj.select_set(False)
-        handle.select_set(True)
-        context.view_layer.objects.active = handle
+        select_only(context, handle)  # ready to grab with its gizmos
         self.report({"INFO"}, f"{handle.name} moves {len(vertices)} vertices")
         return {"FINISHED"}
 

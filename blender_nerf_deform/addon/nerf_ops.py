@@ -9,6 +9,7 @@ from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from .jobs import WorkerOperator
+from .properties import select_only
 
 NERFDEFORM_ENGINE = "NERF_DEFORM"
 
@@ -83,10 +84,7 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         context.collection.objects.link(nerf)
         nerf.location = context.scene.cursor.location
         self._prepare_scene(context.scene)
-        for obj in context.selected_objects:
-            obj.select_set(False)
-        nerf.select_set(True)
-        context.view_layer.objects.active = nerf
+        select_only(context, nerf)
         self.report({"INFO"}, f"Loaded {nerf.name} from {self._path} (bounds {lo} .. {hi})")
         return {"FINISHED"}
 

@@ -75,6 +75,14 @@ def owning_nerf(obj: bpy.types.Object | None) -> bpy.types.Object | None:
     return None
 
 
+def select_only(context, obj: bpy.types.Object) -> None:
+    """Make `obj` the one selected and active object (ready for its gizmos)."""
+    for other in context.selected_objects:
+        other.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+
+
 def handles_of(nerf: bpy.types.Object) -> list[bpy.types.Object]:
     """The handles of a NeRF, in a stable order (by name), so solves are deterministic."""
     return sorted(

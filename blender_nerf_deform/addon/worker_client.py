@@ -200,8 +200,10 @@ class WorkerClient:
                 proc.kill()
                 proc.wait()
 
-    def _exit_report(self) -> str:
-        code = self._proc.poll() if self._proc is not None else None
+    def _exit_report(self, proc: subprocess.Popen | None = None) -> str:
+        """How the worker `proc` (default: the current one) ended, with its last output."""
+        proc = proc or self._proc
+        code = proc.poll() if proc is not None else None
         tail = "\n".join(self._stderr_tail).strip()
         what = f"exited with code {code}" if code is not None else "stopped answering"
         return f"{what}" + (f"; its last output:\n{tail}" if tail else "")
@@ -235,9 +237,7 @@ class WorkerClient:
             for request in pending:
                 del self._requests[request.id]
         if pending:
-            message = f"the NeRF worker exited with code {proc.returncode}"
-            tail = "\n".join(self._stderr_tail).strip()
-            message += f"; its last output:\n{tail}" if tail else ""
+            message = f"the NeRF worker {self._exit_report(proc)}"
             for request in pending:
                 self._deliver(request, ({"type": "error", "id": request.id, "kind": "crashed", "message": message}, {}))
 
