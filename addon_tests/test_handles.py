@@ -60,6 +60,25 @@ def test_add_handle_makes_an_empty_at_the_centroid_owning_the_region(addon):
     assert np.allclose(handle_target(handle, nerf), expected, atol=1e-6)
 
 
+def test_a_renamed_handle_keeps_its_region_apart_from_the_next_handle(addon):
+    """Renaming a handle frees its default name; the next handle takes that name but its own group."""
+    bpy = addon
+    from blender_nerf_deform.addon.handles import group_vertices
+
+    nerf, surface, verts = _nerf_with_surface(bpy)
+    top, bottom = np.flatnonzero(verts[:, 2] > 0.4), np.flatnonzero(verts[:, 2] < -0.4)
+    _select_in_edit_mode(bpy, surface, top)
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    first = bpy.context.active_object
+    first.name = "Tip"
+    _select_in_edit_mode(bpy, surface, bottom)
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    second = bpy.context.active_object
+    assert second.nerf_deform.region != first.nerf_deform.region
+    assert np.array_equal(group_vertices(surface, first.nerf_deform.region), top)
+    assert np.array_equal(group_vertices(surface, second.nerf_deform.region), bottom)
+
+
 def test_handle_parented_to_another_object_follows_it(addon):
     bpy = addon
     from blender_nerf_deform.addon.handles import handle_target

@@ -133,7 +133,11 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
         handle.matrix_parent_inverse = Matrix.Identity(4)
         handle.location = centroid.tolist()  # surface's local frame is the NeRF's frame
 
-        group = _add_to_group(surface, f"NeRF Handle {handle.name}", vertices)
+        # A new group even when a handle renamed since took this name's group: regions never merge.
+        group_name, n = f"NeRF Handle {handle.name}", 1
+        while group_name in surface.vertex_groups:
+            group_name, n = f"NeRF Handle {handle.name}.{n:03d}", n + 1
+        group = _add_to_group(surface, group_name, vertices)
         s = handle.nerf_deform
         # Parented with an identity inverse, its matrix in the NeRF's frame is its local matrix.
         # Rest first, role last: a depsgraph update in between must not see a handle without its rest.
