@@ -27,6 +27,11 @@ DEFORMATION_MODES = (
 )
 
 PIN_GROUP = "NeRF Pin"
+# Blender 5.0 warns when a "//" path is stored in a property not declared blend-relative;
+# older versions (4.2-4.4) do not know the option.
+_BLEND_RELATIVE_PATH = (
+    {"PATH_SUPPORTS_BLEND_RELATIVE"} if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties else set()
+)
 IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
@@ -35,7 +40,8 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
 
     # On the NeRF object.
     checkpoint: StringProperty(
-        name="Checkpoint", subtype="FILE_PATH", description="NeRF checkpoint (nerf.ckpt), relative to the .blend when saved"
+        name="Checkpoint", subtype="FILE_PATH", description="NeRF checkpoint (nerf.ckpt), relative to the .blend when saved",
+        options=_BLEND_RELATIVE_PATH,
     )
     aabb: FloatVectorProperty(name="Bounds", size=6, description="NeRF's scene box in its own frame: min x y z, max x y z")
     deformation_mode: EnumProperty(name="Deformation", items=DEFORMATION_MODES, default="ARAP")
