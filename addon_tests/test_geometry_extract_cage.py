@@ -106,6 +106,20 @@ def test_ply_round_trip_and_atomic_write(tmp_path, extracted):
         write_ply(tmp_path / "missing" / "m.ply", v, f)
 
 
+def test_atomic_write_gives_the_permissions_of_a_plain_write_and_keeps_a_replaced_files(tmp_path):
+    """Not mkstemp's owner-only 0600: renders and meshes must stay readable by the rest of a pipeline."""
+    import os
+
+    from blender_nerf_deform.engine.files import atomic_write
+
+    (tmp_path / "plain").write_bytes(b"x")
+    atomic_write(tmp_path / "atomic", lambda f: f.write(b"x"))
+    assert (tmp_path / "atomic").stat().st_mode & 0o777 == (tmp_path / "plain").stat().st_mode & 0o777
+    os.chmod(tmp_path / "atomic", 0o640)
+    atomic_write(tmp_path / "atomic", lambda f: f.write(b"y"))
+    assert (tmp_path / "atomic").stat().st_mode & 0o777 == 0o640 and (tmp_path / "atomic").read_bytes() == b"y"
+
+
 # ------------------------------------------------------------------ cage
 
 

@@ -10,6 +10,18 @@ from typing import BinaryIO, Callable
 from .errors import EngineError
 
 
+def _process_umask() -> int:
+    # Read once (os.umask can only be read by setting it); files get the permissions a plain
+    # open() would give them, not mkstemp's owner-only 0600, so renders on a shared farm
+    # folder stay readable by the rest of the pipeline.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _process_umask()
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
     """Write `path` through `write(f)` into a temporary file beside it, flushed to disk, then
     rename it over `path`: an interrupted write leaves the previous file (or none), never a
@@ -23,6 +35,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> 
             write(f)
             f.flush()
             os.fsync(f.fileno())
+        try:
+            mode = path.stat().st_mode & 0o7777  # replacing a file keeps its permissions
+        except FileNotFoundError:
+            mode = 0o666 & ~_UMASK
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         try:
