@@ -63,6 +63,16 @@ def test_extraction_finds_the_object_and_drops_the_planted_floaters(extracted):
     assert res.colors.shape == res.vertices.shape and "dropped 4 component(s)" in res.report()
 
 
+def test_report_counts_every_dropped_component_beyond_those_described(monkeypatch):
+    from blender_nerf_deform.engine import extract
+
+    monkeypatch.setattr(extract, "MAX_DESCRIBED", 2)  # fewer than the planted floaters
+    res = extract_mesh(scene_density, BOUNDS, resolution=80)
+    assert len(res.dropped) == 2 and res.dropped_count == len(FLOATERS)
+    assert res.dropped_volume > sum(c.volume for c in res.dropped)
+    assert f"dropped {len(FLOATERS)} component(s)" in res.report() and "nan" not in res.report()
+
+
 def test_extraction_keeps_everything_when_the_volume_threshold_is_tiny():
     res = extract_mesh(scene_density, BOUNDS, resolution=64, min_volume=1e-6)
     assert len(res.kept) == 1 + len(FLOATERS) and not res.dropped

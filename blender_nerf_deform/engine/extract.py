@@ -31,6 +31,7 @@ from .errors import EngineError
 DEFAULT_THRESHOLD = 10.0  # volume density of the surface (the NeRF's density is trunc_exp-activated)
 DEFAULT_RESOLUTION = 256
 DEFAULT_MIN_VOLUME_FRACTION = 0.01  # of the largest component, when no --min-volume is given
+MAX_DESCRIBED = 50  # dropped components described one by one in the result
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
 ColourFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -49,7 +50,9 @@ class ExtractResult:
     faces: np.ndarray  # (F, 3) int64, outward normals
     colors: np.ndarray | None  # (N, 3) float in [0, 1]
     kept: list[Component]
-    dropped: list[Component]
+    dropped: list[Component]  # the largest dropped components, at most MAX_DESCRIBED
+    dropped_count: int  # all dropped components
+    dropped_volume: float  # their total volume
     threshold: float
     min_volume: float
     timings: dict = field(default_factory=dict)
@@ -62,8 +65,8 @@ class ExtractResult:
         if self.dropped:
             big = max(self.dropped, key=lambda c: c.volume)
             lines.append(
-                f"dropped {len(self.dropped)} component(s) below volume {self.min_volume:.4g} "
-                f"(total volume {sum(c.volume for c in self.dropped):.4g}, largest {big.volume:.4g} at "
+                f"dropped {self.dropped_count} component(s) below volume {self.min_volume:.4g} "
+                f"(total volume {self.dropped_volume:.4g}, largest {big.volume:.4g} at "
                 f"({big.centroid[0]:.3f}, {big.centroid[1]:.3f}, {big.centroid[2]:.3f}))"
             )
         else:
@@ -194,11 +197,8 @@ def extract_mesh(
 
     kept = [describe(c) for c in np.flatnonzero(keep_comp)]
     dropped_ids = np.flatnonzero(~keep_comp)
-    # Describe at most the 50 largest dropped components individually (there can be thousands).
-    dropped = [describe(c) for c in dropped_ids[np.argsort(-avol[dropped_ids])][:50]]
-    if len(dropped_ids) > 50:
-        rest = dropped_ids[np.argsort(-avol[dropped_ids])][50:]
-        dropped.append(Component(volume=float(avol[rest].sum()), faces=int(np.isin(labels, rest).sum()), centroid=(float("nan"),) * 3))
+    # Describe only the largest dropped components individually (there can be thousands).
+    dropped = [describe(c) for c in dropped_ids[np.argsort(-avol[dropped_ids])][:MAX_DESCRIBED]]
     faces = faces[keep_comp[labels]]
     used = np.unique(faces)
     remap = np.full(len(verts), -1, dtype=np.int64)
@@ -222,7 +222,8 @@ def extract_mesh(
         normals = trimesh.Trimesh(vertices=verts, faces=faces, process=False).vertex_normals
         colors = np.clip(np.asarray(colour_fn(verts, -normals), dtype=np.float64), 0.0, 1.0)
         timings["colour_s"] = time.perf_counter() - t0
-    return ExtractResult(verts, faces, colors, kept, dropped, float(threshold), float(min_volume), timings)
+    return ExtractResult(verts, faces, colors, kept, dropped, len(dropped_ids), float(avol[dropped_ids].sum()),
+                         float(threshold), float(min_volume), timings)
 
 
 # ------------------------------------------------------------------ NeRF glue

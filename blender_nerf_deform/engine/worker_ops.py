@@ -221,5 +221,5 @@ def extract(job: Job) -> tuple[dict, dict]:
         colour_fn=colour_fn_of(model),
     )
     colors = res.colors if res.colors is not None else np.full((len(res.vertices), 3), 0.8)
-    summary = {"report": res.report(), "kept": len(res.kept), "dropped": len(res.dropped), "timings": res.timings}
+    summary = {"report": res.report(), "kept": len(res.kept), "dropped": res.dropped_count, "timings": res.timings}
     return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32)}
