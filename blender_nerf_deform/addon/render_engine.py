@@ -116,7 +116,11 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
             rgba = np.concatenate([srgb_to_linear(rgba[..., :3]) * alpha[..., None], alpha[..., None]], axis=-1)
         except (CameraError, ValueError, WorkerError) as error:
             if isinstance(error, WorkerError) and error.kind == "cancelled":
-                return
+                if self.test_break():
+                    return  # Esc: Blender asked, and stops the render itself
+                # Cancelled without Blender asking (the worker was stopped or restarted): an empty
+                # frame must not pass for a rendered one.
+                error = f"the render of frame {scene.frame_current} was cancelled in the NeRF worker ({error})"
             self.report({"ERROR"}, f"NeRF Deform: {error}")
             self.error_set(f"NeRF Deform: {error}")
         self._write(width, height, rgba, depth)
