@@ -60,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, metavar="TRANSFORMS_JSON", help="cameras to render, in transforms.json form")
     p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<name>.png (RGBA, straight alpha) per frame")
     p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
-    p.add_argument("--deformed", metavar="V.npy", help="(N,3) deformed positions of the cage's vertices")
+    p.add_argument("--deformed", metavar="V.npy|DIR", help="(N,3) deformed positions of the cage's vertices, same order; "
+                   "or a folder of such .npy poses, one per frame of --cameras, matched in natural name order")
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="render at 1/K of the cameras' resolution")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_stage("render_cli", issue=3))

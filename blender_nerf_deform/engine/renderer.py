@@ -155,9 +155,18 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
         pts, sdirs, keep = sample_transform(pts, sdirs)
     n_density = ray_idx.numel()
     with torch.no_grad():
-        sigma, geo, enc, xn = _density_pass(model, pts, keep_encoding=grad)
-        if keep is not None:
-            sigma = sigma * keep
+        if keep is not None and not grad:
+            # Samples the transform dropped (vacated or unoccupied rest space) never reach the field.
+            kept = torch.nonzero(keep).flatten()
+            s_k, g_k, _, _ = _density_pass(model, pts[kept])
+            sigma = s_k.new_zeros(pts.shape[0])
+            geo = g_k.new_zeros(pts.shape[0], g_k.shape[1])
+            sigma[kept], geo[kept] = s_k, g_k
+            enc = xn = None
+        else:
+            sigma, geo, enc, xn = _density_pass(model, pts, keep_encoding=grad)
+            if keep is not None:
+                sigma = sigma * keep
         trans = _exclusive_transmittance(sigma * step, ray_idx, n)
     if grad:
         # Second pass with autograd on the samples that can still be seen; the encoding of the
