@@ -229,3 +229,29 @@ def test_cli_renders_an_animation_from_a_folder_of_poses(sphere_nerf, model, tmp
     np.save(poses / "pose_2.npy", rest.reshape(-1))
     assert "pose_2.npy: deformed vertices must be a finite (27, 3) array" in error(poses)
     assert not (tmp_path / "bad").exists()  # checked before anything is rendered
+
+
+def test_the_cpu_kernels_and_the_torch_path_agree(model):
+    """The torch path is what CUDA runs: same deformed occupancy and same samples as the numba kernels."""
+    import torch
+
+    from blender_nerf_deform.engine.bending import CageBend
+
+    rest, tets = box_cage((5, 5, 5), lo=(-1.2,) * 3, hi=(1.2,) * 3)
+    a = 0.4 * np.clip(rest[:, 2], 0, None)  # twist the upper half
+    posed = np.stack([np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1], np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1],
+                      rest[:, 2] + 0.1], axis=1)
+    bend = CageBend(model, rest, tets)
+    pts = torch.as_tensor(np.random.default_rng(1).uniform(-1.4, 1.4, (50000, 3)), dtype=torch.float32)
+    dirs = torch.nn.functional.normalize(torch.as_tensor(np.random.default_rng(2).normal(size=(50000, 3)),
+                                                         dtype=torch.float32), dim=1)
+    results = []
+    for kernels in (True, False):
+        bend.use_kernels = kernels
+        bend.set_deformed(posed)
+        results.append((bend.occupancy.aabb, bend.occupancy.mask, *bend.sample_transform(pts, dirs)))
+    (box_k, mask_k, p_k, d_k, keep_k), (box_t, mask_t, p_t, d_t, keep_t) = results
+    assert torch.equal(box_k, box_t) and torch.equal(mask_k, mask_t)
+    assert mask_k.any() and keep_k.any() and not keep_k.all()
+    assert torch.allclose(p_k, p_t, atol=1e-5) and torch.allclose(d_k, d_t, atol=1e-5)
+    assert (keep_k != keep_t).sum() <= 2  # a sample exactly on a cell face may round either way

@@ -109,6 +109,9 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
             result, out = jobs.worker(bpy.context).call(
                 "render", params, arrays, on_progress=lambda f, _m: self.update_progress(f), should_cancel=self.test_break
             )
+            if result.get("inverted_tets") or result.get("degenerate_tets"):
+                self.report({"WARNING"}, f"NeRF Deform: frame {scene.frame_current}: {result['inverted_tets']} inverted and "
+                            f"{result['degenerate_tets']} degenerate cage tets (folds show the folded content)")
             rgba = out["rgba"]
             alpha = rgba[..., 3]
             hit = alpha > 1e-6

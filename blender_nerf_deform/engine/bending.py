@@ -153,7 +153,8 @@ class CageBend:
         self.rotate_directions = rotate_directions
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None
-        self._kernels = HAVE_NUMBA and self.device.type == "cpu"
+        # Fused numba kernels on CPU; tests switch them off to run the torch path, the one CUDA takes.
+        self.use_kernels = HAVE_NUMBA and self.device.type == "cpu"
         self._rest_inverse = tet_inverses(self.rest_vertices, self.tets)
         self._locate_rest_cells()
 
@@ -186,7 +187,7 @@ class CageBend:
         """Renderer hook: (positions, dirs) in deformed space → (rest positions, rest dirs, keep)."""
         tet = self.deformed.locate(positions).to(positions.device)
         occ = self.model.occupancy
-        if self._kernels and positions.device.type == "cpu":
+        if self.use_kernels and positions.device.type == "cpu":
             p, d = torch.empty_like(positions), torch.empty_like(dirs)
             keep = torch.empty(len(positions), dtype=torch.bool)
             box = occ.aabb.reshape(2, 3)
@@ -247,7 +248,7 @@ class CageBend:
         if n == 0:
             return OccupancyGrid.from_mask(torch.as_tensor(model_box, dtype=torch.float32, device=self.device),
                                            torch.zeros((1, 1, 1), dtype=torch.bool, device=self.device))
-        if self._kernels:
+        if self.use_kernels:
             lo_c, hi_c = np.empty((n, 3)), np.empty((n, 3))
             _cell_images(self._cell_ijk, self._corner_tet, self._rest_lo, self._rest_cell, forward, lo_c, hi_c)
         else:
@@ -266,7 +267,7 @@ class CageBend:
         i0 = np.clip(np.floor((lo_c - lo) / cell + tol), 0, r - 1).astype(np.int64)
         i1 = np.clip(np.ceil((hi_c - lo) / cell - tol) - 1, 0, r - 1).astype(np.int64)
         i1 = np.maximum(i0, i1)
-        if self._kernels:
+        if self.use_kernels:
             mask = np.zeros(r**3, dtype=np.bool_)
             _mark_boxes(i0, i1, r, mask)
             mask = torch.from_numpy(mask).reshape(r, r, r)
