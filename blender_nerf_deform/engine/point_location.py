@@ -94,7 +94,7 @@ class TetLocator:
         max_sub: int = 2,
         flat_below: int = 65536,
         backend: str = "auto",
-        numba_cells_per_tet: float | None = 4.0,
+        numba_cells_per_tet: float | None = 2.0,
     ):
         self.flat_below = flat_below
         if device is None:
