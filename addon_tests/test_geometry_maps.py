@@ -244,3 +244,34 @@ def test_locator_rejects_a_degenerate_cage(backend):
     V[:, 2] = 0.0  # flatten: every tet has zero volume
     with pytest.raises(EngineError, match="degenerate cage"):
         TetLocator(V, T, backend=backend)
+
+
+def test_numba_grid_lists_candidates_best_first_whatever_the_thread_count():
+    """Each cell lists its tets best first (the tet nearest to covering the cell's centre), and the
+    build is deterministic: the same lists with one thread as with all of them."""
+    numba = pytest.importorskip("numba")
+    from blender_nerf_deform.engine.locate_kernels import NumbaGrid
+
+    V, T = _jittered_box(6, seed=3)
+    n_threads = numba.get_num_threads()
+    grids = []
+    for threads in sorted({1, n_threads}):
+        numba.set_num_threads(threads)
+        try:
+            grids.append(NumbaGrid(V, T, cells_per_tet=2.0, eps=1e-10, max_res=64))
+        finally:
+            numba.set_num_threads(n_threads)
+    for g in grids[1:]:
+        assert np.array_equal(g.cell_start, grids[0].cell_start) and np.array_equal(g.cell_tets, grids[0].cell_tets)
+    g = grids[0]
+    # Cell centres that lie inside the cage are found in the first tet of their cell's list.
+    res = g.res
+    ijk = np.stack(np.meshgrid(*[np.arange(r) for r in res], indexing="ij"), -1).reshape(-1, 3)
+    centres = g.glo + (ijk + 0.5) / g.inv
+    cells = (ijk[:, 2] * res[1] + ijk[:, 1]) * res[0] + ijk[:, 0]
+    located, _ = g.query(centres, want_bary=False)
+    inside = located >= 0
+    assert inside.any()
+    Minv = tet_inverses(V, T)
+    first = g.cell_tets[g.cell_start[cells[inside]]]
+    assert (barycentric(centres[inside], first, Minv).min(1) > -1e-9).all()
