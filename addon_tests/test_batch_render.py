@@ -2,8 +2,8 @@
 preferences (as `blender -b` starts), the .blend alone (plus its checkpoint) as input.
 
 - A frame rendered before saving equals the same frame rendered from the saved file in a new process.
-- Two processes rendering frames 1-2 and 3-4 (`-s 1 -e 2 -a`, `-s 3 -e 4 -a`) write the same
-  files as one process rendering 1-4.
+- Two processes rendering frames 1-3 and 4-6 (`-s 1 -e 3 -a`, `-s 4 -e 6 -a`) write the same
+  files as one process rendering 1-6.
 """
 
 import os
@@ -37,7 +37,7 @@ def _blender(script: str, user_resources, cwd) -> str:
 @pytest.fixture(scope="module")
 def farm(tmp_path_factory, extension_zip, sphere_nerf):
     """User preferences with the extension installed and the worker Python set, and a saved .blend
-    whose camera orbits the NeRF over frames 1-4 (its checkpoint stored relative to it)."""
+    whose camera orbits the NeRF over frames 1-6 (its checkpoint stored relative to it)."""
     root = tmp_path_factory.mktemp("farm")
     user = root / "user"
     install = f"""
@@ -65,14 +65,14 @@ def farm(tmp_path_factory, extension_zip, sphere_nerf):
     scene.collection.objects.link(cam)
     scene.camera = cam
     cam.data.sensor_fit, cam.data.angle_x = "HORIZONTAL", 0.9
-    for frame in range(1, 5):
+    for frame in range(1, 7):
         a = 0.6 * frame
         eye = (3 * math.cos(a), 3 * math.sin(a), 0.8)
         cam.location = eye
         cam.rotation_euler = (-cam.location).to_track_quat("-Z", "Y").to_euler()  # look at the NeRF
         cam.keyframe_insert("location", frame=frame)
         cam.keyframe_insert("rotation_euler", frame=frame)
-    scene.frame_start, scene.frame_end = 1, 4
+    scene.frame_start, scene.frame_end = 1, 6
     scene.render.resolution_x = scene.render.resolution_y = 24
     scene.render.resolution_percentage = 100
     scene.render.image_settings.file_format = "PNG"
@@ -108,17 +108,17 @@ def _pixels(path):
 @pytest.mark.slow
 def test_split_frame_ranges_write_the_same_files_as_one_process(farm):
     _, project = farm
-    _render_range(farm, 1, 4, "whole")
-    _render_range(farm, 1, 2, "split")
-    _render_range(farm, 3, 4, "split")
+    _render_range(farm, 1, 6, "whole")
+    _render_range(farm, 1, 3, "split")
+    _render_range(farm, 4, 6, "split")
     whole = sorted(p.name for p in (project / "whole").iterdir())
-    assert whole == [f"frame_000{k}.png" for k in range(1, 5)]
+    assert whole == [f"frame_000{k}.png" for k in range(1, 7)]
     assert sorted(p.name for p in (project / "split").iterdir()) == whole
     frames = [_pixels(project / "whole" / name) for name in whole]
     for name, frame in zip(whole, frames):
         assert np.array_equal(frame, _pixels(project / "split" / name)), name
     # The camera moves: the frames are not all the same picture.
-    assert not np.array_equal(frames[0], frames[3])
+    assert not np.array_equal(frames[0], frames[5])
     assert frames[0][..., 3].max() > 100
 
 
@@ -126,5 +126,5 @@ def test_split_frame_ranges_write_the_same_files_as_one_process(farm):
 def test_frame_rendered_before_saving_equals_it_rendered_from_the_saved_file(farm):
     _, project = farm
     if not (project / "whole").exists():
-        _render_range(farm, 1, 4, "whole")
+        _render_range(farm, 1, 6, "whole")
     assert np.array_equal(_pixels(project / "before_save_0003.png"), _pixels(project / "whole" / "frame_0003.png"))
