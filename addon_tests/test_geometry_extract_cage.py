@@ -160,6 +160,19 @@ def test_every_surface_point_lies_inside_the_cage_with_the_margin(extracted, cag
     assert cage.clearance >= 0.05
 
 
+def test_a_cage_that_does_not_clear_the_object_is_rejected(extracted, cage):
+    """Every fTetWild result is validated (a rejected one is rebuilt): a cage around the bare surface,
+    with no offset, cannot clear a 0.05 margin, whatever fTetWild returns."""
+    from blender_nerf_deform.engine.cage import _tetrahedralize_checked
+
+    assert cage.timings["attempts"] == 1  # the usual case: the first build is accepted
+    V, F = extracted.vertices, extracted.faces
+    timings = {"tetrahedralize_s": 0.0, "clearance_check_s": 0.0}
+    with pytest.raises(EngineError, match=r"cage clearance -?[0-9.e-]+ is below the margin 0\.05"):
+        _tetrahedralize_checked(V, V, F, 1e-3, 0.05, True, 0, {}, timings)
+    assert timings["tetrahedralize_s"] > 0
+
+
 def test_cage_file_round_trip_and_degenerate_cage_error(tmp_path, cage):
     from blender_nerf_deform.engine.mesh_io import load_cage, save_cage
 
