@@ -30,6 +30,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--cage", help="reuse a cage .npz instead of building one")
     ap.add_argument("--save-cage", help="write the built cage here")
+    ap.add_argument("--cuda", action="store_true", help="also time the torch path on CUDA (points and cage on the GPU)")
     args = ap.parse_args()
 
     import igl
@@ -68,10 +69,15 @@ def main() -> int:
         tree.init(Vd, T)
         return igl.in_element(Vd, T, Q, tree)
 
-    def run_ours(backend, dtype=torch.float64):
+    def run_ours(backend, dtype=torch.float64, device="cpu"):
+        Qd = Qt.to(device=device, dtype=dtype)  # the points already on the device, as the renderer's samples are
+
         def f():
-            loc = TetLocator(Vd, T, backend=backend, dtype=dtype)
-            return loc.locate(Qt if dtype == torch.float64 else Qt.to(dtype)).numpy()
+            loc = TetLocator(Vd, T, backend=backend, dtype=dtype, device=device)
+            out = loc.locate(Qd)
+            if device != "cpu":
+                torch.cuda.synchronize()
+            return out.cpu().numpy()
 
         return f
 
@@ -80,8 +86,14 @@ def main() -> int:
     t_igl, ref = timed(run_igl, args.repeat)
     results["igl"] = t_igl
     rows = []
-    for name, fn in (("numba (CPU kernels)", run_ours("numba")), ("torch float32", run_ours("torch", torch.float32)), ("torch float64", run_ours("torch"))):
-        t, got = timed(fn, args.repeat if "numba" in name else max(1, args.repeat // 2))
+    variants = [("numba (CPU kernels)", run_ours("numba")), ("torch float32", run_ours("torch", torch.float32)),
+                ("torch float64", run_ours("torch"))]
+    if args.cuda:
+        run_ours("torch", torch.float32, "cuda")()  # CUDA context and kernels warmed up outside the timing
+        variants += [("torch float32 on CUDA", run_ours("torch", torch.float32, "cuda")),
+                     ("torch float64 on CUDA", run_ours("torch", torch.float64, "cuda"))]
+    for name, fn in variants:
+        t, got = timed(fn, args.repeat if ("numba" in name or "CUDA" in name) else max(1, args.repeat // 2))
         differ = np.flatnonzero(got != ref)
         Minv = tet_inverses(Vd, T)
         tol = 1e-9 if "float32" not in name else 1e-4

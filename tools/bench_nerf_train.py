@@ -61,6 +61,7 @@ def main() -> int:
     ap.add_argument("--target-samples", type=int, default=None)
     ap.add_argument("--lr-final", type=float, default=None)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -82,7 +83,7 @@ def main() -> int:
     if args.lr_final:
         opts.lr_final_factor = args.lr_final
     torch.manual_seed(0)
-    model = NerfModel(cfg)
+    model = NerfModel(cfg).to(args.device)
     trainer = Trainer(model, train, opts)
     marks = [float(x) for x in args.at.split(",") if float(x) <= args.seconds]
     results = []
@@ -108,7 +109,8 @@ def main() -> int:
     summary = {"config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
                "results": results, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
                "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
-               "threads": torch.get_num_threads(), "torch": torch.__version__}
+               "threads": torch.get_num_threads(), "torch": torch.__version__,
+               "device": str(model.device) + (f" ({torch.cuda.get_device_name()})" if model.device.type == "cuda" else "")}
     print(json.dumps({k: v for k, v in summary.items() if k != "results"}), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# The CUDA figures of issues 3-5 in one run, on a machine with an NVIDIA GPU and a Python whose torch
+# has CUDA (the project's `.venv` has the CPU wheel). Writes JSON and logs to $OUT (default ./cuda_out).
+#
+#   DATA=../shared/datasets/lego_200 GT=/work/runs/gt_bench TRAIN_S=120 bash tools/bench_cuda.sh
+#
+# 1. NeRF training on CUDA (lego_200, PSNR on the 9 held-out views at 30 / 60 / TRAIN_S s).
+# 2. extract + cage of that NeRF (the engine's command line).
+# 3. Ray-bent vs undeformed render time on CUDA, 200x200 (tools/bench_bending.py --device cuda).
+# 4. Point location: the torch path on CUDA beside igl and the CPU kernels (tools/bench_geometry_locate.py).
+# 5. Ground-truth deformation benchmark on CUDA, reusing the Cycles ground truth made beforehand on a
+#    machine with Blender (GT: a --work folder of tools/bench_bending_groundtruth.py); trains anew.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+PY=${PY:-python3}
+DATA=${DATA:-../shared/datasets/lego_200}
+TRAIN_S=${TRAIN_S:-120}
+OUT=${OUT:-cuda_out}
+W=${W:-/tmp/nerf_cuda}
+mkdir -p "$OUT" "$W"
+export PYTHONUNBUFFERED=1
+step() { echo "=== $(date +%T) $*"; }
+
+step machine
+nvidia-smi -L
+$PY -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(), 'numpy', numpy.__version__)"
+
+step "1. train lego on CUDA for ${TRAIN_S}s"
+$PY tools/bench_nerf_train.py --device cuda --data "$DATA" --seconds "$TRAIN_S" --at "30,60,$TRAIN_S" \
+    --json "$OUT/train_cuda.json" --save "$W/lego/nerf.ckpt" 2>&1 | tail -n 6
+
+step "2. extract + cage"
+$PY -m blender_nerf_deform.engine extract --nerf "$W/lego/nerf.ckpt" --out "$W/lego/mesh.ply" 2>&1 | tail -n 3
+$PY -m blender_nerf_deform.engine cage --nerf "$W/lego/nerf.ckpt" --mesh "$W/lego/mesh.ply" --out "$W/lego/cage.npz" 2>&1 | tail -n 2
+
+step "3. bent vs undeformed render time on CUDA"
+$PY tools/bench_bending.py --device cuda --nerf "$W/lego/nerf.ckpt" --cage "$W/lego/cage.npz" --data "$DATA" \
+    --every 10 --reps 5 --json "$OUT/bending_cuda.json" 2>&1 | tail -n 30
+
+step "4. point location incl. CUDA"
+$PY tools/bench_geometry_locate.py --tets 50000 --repeat 5 --cuda 2>&1 | tail -n 12 | tee "$OUT/locate.txt"
+
+if [ -n "${GT:-}" ]; then
+    step "5. ground-truth deformation benchmark on CUDA"
+    mkdir -p "$W/gt"
+    cp -r "$GT"/data "$GT"/gt_* "$GT"/gt_surface_vertices.npy "$W/gt/"
+    $PY tools/bench_bending_groundtruth.py --work "$W/gt" --reuse --train-seconds "$TRAIN_S" 2>&1 | tail -n 16 | tee "$OUT/groundtruth.txt"
+    cp "$W/gt/results.json" "$OUT/groundtruth_cuda.json" 2>/dev/null
+fi
+step done
