@@ -123,6 +123,13 @@ def test_split_frame_ranges_write_the_same_files_as_one_process(farm):
             differing.append(f"{name}: {int((diff.max(-1) > 0).sum())} of {diff.shape[0] * diff.shape[1]} pixels "
                              f"differ, by up to {int(diff.max())}/255")
     assert not differing, "; ".join(differing)
+    # The workers wrote their compiled files (numba kernels, bytecode of the engine's torch
+    # modules, which Blender itself never imports) under the user folder, not into the extension.
+    user, _ = farm
+    (extension,) = user.glob("extensions/*/blender_nerf_deform")
+    assert not [p for p in extension.rglob("*") if p.suffix in (".nbi", ".nbc") or p.name.startswith("renderer.")
+                and p.suffix == ".pyc"]
+    assert list(user.glob("extensions/.user/*/blender_nerf_deform/worker/numba_cache/**/*.nbi"))
     # The camera moves: the frames are not all the same picture.
     assert not np.array_equal(frames[0], frames[5])
     assert frames[0][..., 3].max() > 100

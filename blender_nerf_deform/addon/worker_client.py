@@ -147,6 +147,11 @@ class WorkerClient:
         env.pop("PYTHONHOME", None)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PACKAGE_DIR.parent), env.get("PYTHONPATH", "")) if p)
         env["PYTHONUNBUFFERED"] = "1"
+        work = worker_directory()
+        # The worker's compiled files (numba's kernel cache, Python's bytecode) go to the user
+        # folder too: an installed extension's own folder is Blender's to replace, not ours to write.
+        env.setdefault("NUMBA_CACHE_DIR", os.path.join(work, "numba_cache"))
+        env.setdefault("PYTHONPYCACHEPREFIX", os.path.join(work, "pycache"))
         self._stderr_tail.clear()
         try:
             proc = subprocess.Popen(
@@ -155,7 +160,7 @@ class WorkerClient:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 env=env,
-                cwd=worker_directory(),
+                cwd=work,
             )
         except OSError as exc:
             raise WorkerError(f"cannot start worker Python {self.python}: {exc}", "setup") from None
