@@ -149,29 +149,12 @@ def _perimeter_u(co, normal, lo, hi) -> float:
 
 def _box_object(bpy, name, bounds, material):
     """A closed box mesh, faces subdivided to about EDGE, with a UV map tied to the surface."""
-    import bmesh  # noqa: PLC0415
+    from default_scene import closed_box_bmesh, object_from_bmesh  # noqa: PLC0415
 
     lo, hi = bounds
-    (x0, y0, z0), (x1, y1, z1) = lo, hi
-    nx, ny, nz = (max(1, round((hi[i] - lo[i]) / EDGE)) for i in range(3))
-    bm = bmesh.new()
-
-    def grid(origin, u_axis, v_axis, nu, nv):
-        verts = [[bm.verts.new(tuple(origin[c] + u_axis[c] * i / nu + v_axis[c] * j / nv for c in range(3)))
-                  for j in range(nv + 1)] for i in range(nu + 1)]
-        for i in range(nu):
-            for j in range(nv):
-                bm.faces.new((verts[i][j], verts[i + 1][j], verts[i + 1][j + 1], verts[i][j + 1]))
-
-    dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
-    grid((x0, y0, z0), (0, dy, 0), (dx, 0, 0), ny, nx)
-    grid((x0, y0, z1), (dx, 0, 0), (0, dy, 0), nx, ny)
-    grid((x0, y0, z0), (dx, 0, 0), (0, 0, dz), nx, nz)
-    grid((x0, y1, z0), (0, 0, dz), (dx, 0, 0), nz, nx)
-    grid((x0, y0, z0), (0, 0, dz), (0, dy, 0), nz, ny)
-    grid((x1, y0, z0), (0, dy, 0), (0, 0, dz), ny, nz)
-    bmesh.ops.remove_doubles(bm, verts=bm.verts, dist=1e-6)
-    bmesh.ops.recalc_face_normals(bm, faces=bm.faces)
+    (x0, y0, _), (x1, y1, _) = lo, hi
+    dx, dy = x1 - x0, y1 - y0
+    bm = closed_box_bmesh(bounds, tuple(max(1, round((hi[i] - lo[i]) / EDGE)) for i in range(3)))
     uv = bm.loops.layers.uv.new("UVMap")
     perimeter = 2 * (dx + dy)
     for face in bm.faces:
@@ -185,13 +168,7 @@ def _box_object(bpy, name, bounds, material):
                 u = _perimeter_u(co, n, lo, hi) / HEIGHT
                 v = (co[2] - Z_LO) / HEIGHT
             loop[uv].uv = (u, v)
-    mesh = bpy.data.meshes.new(name)
-    bm.to_mesh(mesh)
-    bm.free()
-    mesh.materials.append(material)
-    obj = bpy.data.objects.new(name, mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    return obj
+    return object_from_bmesh(bpy, name, bm, material)
 
 
 def _uv_material(bpy):

@@ -73,8 +73,9 @@ def _shade(normal) -> float:
     return 0.45 + 0.55 * lambert
 
 
-def _box(bpy, name: str, bounds, divisions, colour_of, material):
-    """A closed box mesh object, each side a grid of divisions (nx, ny, nz); colour_of(centre, normal) per face."""
+def closed_box_bmesh(bounds, divisions):
+    """A closed box as a bmesh (the caller frees it): each side a grid of divisions (nx, ny, nz) quads,
+    shared edges welded, normals outward."""
     import bmesh  # noqa: PLC0415
 
     (x0, y0, z0), (x1, y1, z1) = bounds
@@ -97,6 +98,12 @@ def _box(bpy, name: str, bounds, divisions, colour_of, material):
     grid((x1, y0, z0), (0, dy, 0), (0, 0, dz), ny, nz)   # right (+X)
     bmesh.ops.remove_doubles(bm, verts=bm.verts, dist=1e-6)
     bmesh.ops.recalc_face_normals(bm, faces=bm.faces)
+    return bm
+
+
+def _box(bpy, name: str, bounds, divisions, colour_of, material):
+    """A closed box mesh object, each side a grid of divisions (nx, ny, nz); colour_of(centre, normal) per face."""
+    bm = closed_box_bmesh(bounds, divisions)
     layer = bm.loops.layers.float_color.new("Col")
     for face in bm.faces:
         centre = tuple(face.calc_center_median())
@@ -105,10 +112,16 @@ def _box(bpy, name: str, bounds, divisions, colour_of, material):
         s = _shade(normal)
         for loop in face.loops:
             loop[layer] = (r * s, g * s, b * s, 1.0)
+    obj = object_from_bmesh(bpy, name, bm, material)
+    obj.data.color_attributes.active_color = obj.data.color_attributes["Col"]
+    return obj
+
+
+def object_from_bmesh(bpy, name: str, bm, material):
+    """A mesh object linked to the scene, made from (and freeing) a bmesh, with one material."""
     mesh = bpy.data.meshes.new(name)
     bm.to_mesh(mesh)
     bm.free()
-    mesh.color_attributes.active_color = mesh.color_attributes["Col"]
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     bpy.context.scene.collection.objects.link(obj)
