@@ -146,3 +146,30 @@ def test_cli_device_cuda_without_cuda(sphere, tmp_path):
     proc = _cli("train", "--data", sphere[0], "--out", tmp_path / "r", "--steps", "1", "--device", "cuda", check=False)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1].startswith("error: --device cuda")
+
+
+def test_an_occupancy_update_keeps_the_largest_of_a_cells_repeated_samples():
+    """Random cells repeat within one update, each at its own jittered point: the cell keeps the max
+    (as an EMA-max should), whatever order the writes land in, so a seeded training run repeats."""
+    from blender_nerf_deform.engine.occupancy import OccupancyGrid
+
+    grid = OccupancyGrid(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), resolution=4)
+    grid.density = torch.linspace(0.0, 6.3, 64)
+    before = grid.density.clone()
+    seen = []
+
+    def density(points):  # depends on where in its cell each point landed
+        seen.append(points.clone())
+        return 5.0 + 3.0 * points.sum(-1)
+
+    torch.manual_seed(3)
+    grid.update(density, step_size=0.1, decay=0.95, n_uniform=3000, n_occupied=0)
+    pts = torch.cat(seen)
+    cells = ((pts - grid.aabb[0]) / grid.cell_size).floor().long()
+    idx = cells[:, 0] + 4 * cells[:, 1] + 16 * cells[:, 2]
+    assert np.bincount(idx.numpy(), minlength=64).min() > 20  # every cell was drawn many times
+    expected = before.clone()
+    for c in range(64):
+        expected[c] = max(float(before[c]) * 0.95, float(density(pts[idx == c]).max()))
+    assert torch.allclose(grid.density, expected, rtol=0, atol=1e-6)
+

@@ -42,6 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder; the checkpoint is RUN_DIR/nerf.ckpt")
     p.add_argument("--max-seconds", type=float, metavar="S", help="stop training after S seconds")
     p.add_argument("--steps", type=int, metavar="N", help="stop training after N steps")
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="seed of the initial weights and the ray sampling (default 0)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/nerf.ckpt when it exists")

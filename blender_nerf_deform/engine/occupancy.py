@@ -133,7 +133,11 @@ class OccupancyGrid:
         new = torch.empty(idx.shape[0], device=dev)
         for s in range(0, idx.shape[0], chunk):
             new[s: s + chunk] = density_fn(self.cell_centers(idx[s: s + chunk]))
-        self.density[idx] = torch.maximum(self.density[idx] * decay, new)
+        # Random cells repeat: a plain `density[idx] = ...` keeps whichever duplicate is written last,
+        # which varies from run to run (parallel writes). The max over duplicates is the same in any
+        # order, so training with a fixed seed repeats exactly.
+        self.density.scatter_reduce_(0, idx, torch.maximum(self.density[idx] * decay, new), reduce="amax",
+                                     include_self=False)
         opacity = self.density * step_size
         thresh = min(threshold, float(opacity.mean()))
         self.mask = opacity > thresh

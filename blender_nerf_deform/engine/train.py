@@ -15,6 +15,8 @@ import json
 import time
 from pathlib import Path
 
+import torch
+
 from .checkpoint import load_nerf, read_checkpoint
 from .dataset import load_dataset
 from .errors import EngineError
@@ -25,8 +27,13 @@ DEFAULT_SECONDS = 300.0
 
 
 def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
-                 checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None) -> dict:
-    """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json)."""
+                 checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
+                 seed: int = 0) -> dict:
+    """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
+
+    `seed` seeds the initial weights as well as the trainer's sampling, so that a run of a fixed
+    number of steps on the CPU is repeatable (a time budget is not: it depends on the machine).
+    """
     dev = resolve_device(device)
     if steps is not None and steps < 1:
         raise EngineError(f"--steps must be positive, got {steps}")
@@ -48,8 +55,10 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
         cfg = NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)])
         for k, v in (config_overrides or {}).items():
             setattr(cfg, k, v)
+        torch.manual_seed(seed)
         model = NerfModel(cfg).to(dev)
-    opts = TrainOptions(max_seconds=max_seconds, steps=steps, checkpoint_path=str(ckpt), checkpoint_every_s=checkpoint_every)
+    opts = TrainOptions(max_seconds=max_seconds, steps=steps, checkpoint_path=str(ckpt), checkpoint_every_s=checkpoint_every,
+                        seed=seed)
     trainer = Trainer(model, ds, opts)
     if state:
         trainer.load_state_dict(state)
@@ -65,7 +74,8 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
 def main(args) -> int:
     summary = run_training(args.data, args.out, max_seconds=args.max_seconds, steps=args.steps, device=args.device,
                            downscale=getattr(args, "downscale", 1) or 1, resume=getattr(args, "resume", False),
-                           checkpoint_every=getattr(args, "checkpoint_every", 120.0) or 120.0)
+                           checkpoint_every=getattr(args, "checkpoint_every", 120.0) or 120.0,
+                           seed=getattr(args, "seed", 0))
     print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s, last batch PSNR "
           f"{summary.get('psnr', float('nan')):.2f} dB; wrote {summary['checkpoint']}")
     return 0
