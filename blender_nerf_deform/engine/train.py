@@ -32,7 +32,8 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
     """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
 
     `seed` seeds the initial weights as well as the trainer's sampling, so that a run of a fixed
-    number of steps on the CPU is repeatable (a time budget is not: it depends on the machine).
+    number of steps on the CPU repeats on the same machine (a time budget cannot: it depends on
+    the machine's speed).
     """
     dev = resolve_device(device)
     if steps is not None and steps < 1:
