@@ -135,7 +135,7 @@ class OccupancyGrid:
             new[s: s + chunk] = density_fn(self.cell_centers(idx[s: s + chunk]))
         # Random cells repeat: a plain `density[idx] = ...` keeps whichever duplicate is written last,
         # which varies from run to run (parallel writes). The max over duplicates is the same in any
-        # order, so training with a fixed seed repeats exactly.
+        # order, so a seeded training run does not depend on the order of the writes.
         self.density.scatter_reduce_(0, idx, torch.maximum(self.density[idx] * decay, new), reduce="amax",
                                      include_self=False)
         opacity = self.density * step_size

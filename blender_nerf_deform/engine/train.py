@@ -1,7 +1,7 @@
 """`train` command: train a NeRF on a transforms.json dataset, write RUN_DIR/nerf.ckpt.
 
     python -m blender_nerf_deform.engine train --data DIR --out RUN_DIR
-        [--max-seconds S] [--steps N] [--device auto|cpu|cuda] [--downscale K] [--resume]
+        [--max-seconds S] [--steps N] [--seed N] [--device auto|cpu|cuda] [--downscale K] [--resume]
 
 Without --max-seconds or --steps it trains for 300 seconds. The checkpoint is
 rewritten (atomically) every --checkpoint-every seconds and at the end, also when
