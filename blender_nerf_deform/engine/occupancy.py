@@ -28,7 +28,8 @@ class OccupancyGrid:
 
     @classmethod
     def from_mask(cls, aabb, mask: torch.Tensor) -> "OccupancyGrid":
-        """A grid given by a boolean (R, R, R) mask indexed [x, y, z] (e.g. for a deformed space)."""
+        """A grid given by a boolean (R, R, R) mask indexed [z, y, x] (flat order has x fastest, as
+        `cell_centers` reads it), e.g. for a deformed space."""
         mask = torch.as_tensor(mask, dtype=torch.bool)
         r = mask.shape[0]
         if mask.shape != (r, r, r):
