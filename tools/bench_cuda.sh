@@ -43,7 +43,7 @@ $PY tools/bench_geometry_locate.py --tets 50000 --repeat 5 --cuda 2>&1 | tail -n
 if [ -n "${GT:-}" ]; then
     step "5. ground-truth deformation benchmark on CUDA"
     mkdir -p "$W/gt"
-    cp -r "$GT"/data "$GT"/gt_* "$GT"/gt_surface_vertices.npy "$W/gt/"
+    cp -r "$GT"/data "$GT"/gt_* "$W/gt/"  # gt_*: the deformed ground truths and gt_surface_vertices.npy
     $PY tools/bench_bending_groundtruth.py --work "$W/gt" --reuse --train-seconds "$TRAIN_S" 2>&1 | tail -n 16 | tee "$OUT/groundtruth.txt"
     cp "$W/gt/results.json" "$OUT/groundtruth_cuda.json" 2>/dev/null
 fi
