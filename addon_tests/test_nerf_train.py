@@ -150,7 +150,7 @@ def test_cli_device_cuda_without_cuda(sphere, tmp_path):
 
 def test_an_occupancy_update_keeps_the_largest_of_a_cells_repeated_samples():
     """Random cells repeat within one update, each at its own jittered point: the cell keeps the max
-    (as an EMA-max should), whatever order the writes land in, so a seeded training run repeats."""
+    (as an EMA-max should), whatever order the writes land in."""
     from blender_nerf_deform.engine.occupancy import OccupancyGrid
 
     grid = OccupancyGrid(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), resolution=4)
@@ -172,4 +172,3 @@ def test_an_occupancy_update_keeps_the_largest_of_a_cells_repeated_samples():
     for c in range(64):
         expected[c] = max(float(before[c]) * 0.95, float(density(pts[idx == c]).max()))
     assert torch.allclose(grid.density, expected, rtol=0, atol=1e-6)
-
