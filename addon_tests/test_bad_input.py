@@ -140,7 +140,10 @@ def test_camera_inside_the_cage_renders_the_bent_nerf_correctly(addon, sphere_ne
 
     nerf.nerf_deform.cage, nerf.nerf_deform.deformation_mode = cage, "MODIFIERS"
     rest_pose = _render(bpy, tmp_path / "rest_pose.png")
-    assert np.array_equal(rest_pose, plain)  # bent through the undeformed cage: exactly the plain NeRF
+    # Bent through the undeformed cage: the plain NeRF, to float rounding (identity-bent frames differ
+    # from plain ones by ~1e-5, 96.9 dB on the lego: BENCHMARKS), so a pixel on an 8-bit rounding
+    # boundary may flip by one level; the bar for the identity is 50 dB.
+    assert _psnr(rest_pose, plain) >= 50
 
     shift = Vector((0.3, -0.2, 0.25))
     cage.location = shift  # the camera stays inside the moved cage: y from -1.7 to 1.3
