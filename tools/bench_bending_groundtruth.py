@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shutil
 import subprocess
 import sys
@@ -173,11 +172,9 @@ def _box_object(bpy, name, bounds, material):
 
 def _uv_material(bpy):
     """Emission only (strength 1): checker of a hue ramp along v against a light/dark ramp along u."""
-    mat = bpy.data.materials.new("GroundTruthUV")
-    if mat.node_tree is None:  # Blender < 5.0
-        mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    nodes.clear()
+    from default_scene import empty_node_material  # noqa: PLC0415
+
+    mat, nodes, links = empty_node_material(bpy, "GroundTruthUV")
     uv = nodes.new("ShaderNodeUVMap")
     uv.uv_map = "UVMap"
     sep = nodes.new("ShaderNodeSeparateXYZ")
@@ -313,13 +310,10 @@ def _on_white(rgba: np.ndarray) -> np.ndarray:
     return rgba[..., :3] * a + (1.0 - a)
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a - b) ** 2))
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
-
-
 def score(render_dir: Path, gt_transforms: Path) -> dict:
     """Mean PSNR (RGB on white) and alpha PSNR of DIR/<name>.png against the frames of a transforms.json."""
+    from blender_nerf_deform.engine.evaluate import psnr  # noqa: PLC0415
+
     meta = json.loads(gt_transforms.read_text())
     rgb, alpha = [], []
     for frame in meta["frames"]:
@@ -327,8 +321,8 @@ def score(render_dir: Path, gt_transforms: Path) -> dict:
         out = _load_rgba(render_dir / f"{Path(frame['file_path']).stem}.png")
         if out.shape != gt.shape:
             raise SystemExit(f"{render_dir}: frame {frame['file_path']} is {out.shape}, ground truth {gt.shape}")
-        rgb.append(_psnr(_on_white(out), _on_white(gt)))
-        alpha.append(_psnr(out[..., 3], gt[..., 3]))
+        rgb.append(psnr(_on_white(out), _on_white(gt)))
+        alpha.append(psnr(out[..., 3], gt[..., 3]))
     return {"psnr": float(np.mean(rgb)), "psnr_alpha": float(np.mean(alpha)), "per_view": rgb}
 
 
@@ -344,21 +338,13 @@ def cage_map_error(surface: np.ndarray, rest_vertices, tets, fn, px_per_unit: fl
 
 def cage_components(tets: np.ndarray, n_vertices: int) -> int:
     """Connected pieces of the cage (tets sharing a vertex)."""
-    parent = np.arange(n_vertices)
+    from scipy.sparse import coo_matrix  # noqa: PLC0415
+    from scipy.sparse.csgraph import connected_components  # noqa: PLC0415
 
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for t in tets:
-        r0 = find(t[0])
-        for v in t[1:]:
-            r = find(v)
-            if r != r0:
-                parent[r] = r0
-    return len({find(v) for v in np.unique(tets)})
+    edges = tets[:, [0, 0, 0]].ravel(), tets[:, [1, 2, 3]].ravel()
+    graph = coo_matrix((np.ones(len(edges[0])), edges), shape=(n_vertices, n_vertices))
+    _, label = connected_components(graph, directed=False)
+    return len(np.unique(label[np.unique(tets)]))
 
 
 # --------------------------------------------------------------------------- main

@@ -128,12 +128,17 @@ def object_from_bmesh(bpy, name: str, bm, material):
     return obj
 
 
-def _emission_material(bpy):
-    mat = bpy.data.materials.new("DefaultSceneEmission")
+def empty_node_material(bpy, name: str):
+    """A new material with an empty node tree: (material, nodes, links)."""
+    mat = bpy.data.materials.new(name)
     if mat.node_tree is None:  # Blender < 5.0 (5.0 always has node trees; use_nodes is deprecated)
         mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    nodes.clear()
+    mat.node_tree.nodes.clear()
+    return mat, mat.node_tree.nodes, mat.node_tree.links
+
+
+def _emission_material(bpy):
+    mat, nodes, links = empty_node_material(bpy, "DefaultSceneEmission")
     attribute = nodes.new("ShaderNodeVertexColor")
     attribute.layer_name = "Col"
     emission = nodes.new("ShaderNodeEmission")

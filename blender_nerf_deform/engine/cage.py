@@ -189,14 +189,15 @@ def build_cage(
     # here all passed. So every result is validated, and a rejected one is rebuilt, up to
     # `attempts` runs in all, before the error is reported.
     timings["tetrahedralize_s"] = timings["clearance_check_s"] = 0.0
-    for attempt in range(max(1, int(attempts))):
+    runs = max(1, int(attempts))
+    for attempt in range(runs):
         try:
             CV, CT, clearance = _tetrahedralize_checked(
                 V, ev, ef, eps_abs / ediag, margin, optimize, num_threads, kw, timings)
             break
         except EngineError as error:
-            if attempt == max(1, int(attempts)) - 1:
-                raise EngineError(f"{error} (after {attempt + 1} fTetWild run(s))") from None
+            if attempt == runs - 1:
+                raise EngineError(f"{error} (after {runs} fTetWild run(s))") from None
             print(f"cage: fTetWild result rejected ({error}); rebuilding", file=sys.stderr)
     timings["attempts"] = attempt + 1
     return Cage(vertices=CV, tets=CT, margin=float(margin), clearance=float(clearance), timings=timings)
