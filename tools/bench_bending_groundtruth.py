@@ -362,6 +362,8 @@ def main(argv=None) -> int:
     ap.add_argument("--margin", type=float, default=0.3,
                     help="cage margin (default 0.3: wider than half the 0.45 gap, so the cage is one piece)")
     ap.add_argument("--edge-length", type=float, default=None, help="cage tet edge length (default: the engine's)")
+    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                    help="device of training, extraction and renders (default: cuda if available, else cpu)")
     ap.add_argument("--reuse", action="store_true",
                     help="keep ground truth, checkpoint, mesh and cage already in --work; redo renders and scores")
     args = ap.parse_args(argv)
@@ -398,12 +400,12 @@ def main(argv=None) -> int:
         reused.append("checkpoint")
     else:
         timings["train_s"] = engine(work / "train.log", "train", "--data", work / "data", "--out", run,
-                                    "--max-seconds", args.train_seconds)
+                                    "--max-seconds", args.train_seconds, "--device", args.device)
         print(f"train: {timings['train_s']:.0f} s; {_last_lines(work / 'train.log', 1)}", flush=True)
     if args.reuse and mesh.is_file():
         reused.append("mesh")
     else:
-        timings["extract_s"] = engine(work / "extract.log", "extract", "--nerf", ckpt, "--out", mesh)
+        timings["extract_s"] = engine(work / "extract.log", "extract", "--nerf", ckpt, "--out", mesh, "--device", args.device)
         print(f"extract: {timings['extract_s']:.0f} s; {_last_lines(work / 'extract.log', 2)}", flush=True)
     cage_args = {"margin": args.margin, "edge_length": args.edge_length}
     cage_args_path = run / "cage_args.json"
@@ -439,12 +441,13 @@ def main(argv=None) -> int:
         shutil.rmtree(renders)
     renders.mkdir()
     rows = []
-    t = engine(work / "render_rest.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out", renders / "rest")
+    t = engine(work / "render_rest.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out", renders / "rest",
+               "--device", args.device)
     rest_score = score(renders / "rest", test_json)
     rows.append({"pose": "rest (no cage)", "gt": "data/test", **rest_score, "render_s": t})
     np.save(work / "V_identity.npy", rest_v)
     t = engine(work / "render_identity.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out",
-               renders / "identity", "--cage", cage_path, "--deformed", work / "V_identity.npy")
+               renders / "identity", "--cage", cage_path, "--deformed", work / "V_identity.npy", "--device", args.device)
     rows.append({"pose": "identity (cage, V = rest)", "gt": "data/test", **score(renders / "identity", test_json),
                  "render_s": t})
     for name, fn in MAPS.items():
@@ -452,7 +455,7 @@ def main(argv=None) -> int:
         np.save(work / f"V_{name}.npy", V)
         gt_json = work / f"gt_{name}" / "test" / "transforms.json"
         t = engine(work / f"render_{name}.log", "render", "--nerf", ckpt, "--cameras", gt_json, "--out",
-                   renders / name, "--cage", cage_path, "--deformed", work / f"V_{name}.npy")
+                   renders / name, "--cage", cage_path, "--deformed", work / f"V_{name}.npy", "--device", args.device)
         row = {"pose": name, "gt": f"gt_{name}/test", **score(renders / name, gt_json), "render_s": t,
                "undeformed_vs_gt": score(renders / "rest", gt_json)["psnr"],
                "inverted_tets": inversion_report(rest_v, V, tets).n_inverted,

@@ -69,22 +69,39 @@ def orient_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def check_closed_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") -> None:
-    """EngineError unless the triangle mesh is closed (watertight), manifold and consistently wound."""
-    import trimesh
+    """EngineError unless the triangle mesh is closed (watertight), manifold and consistently wound.
 
+    Judged on the faces as given first (an extracted mesh may hold distinct vertices at one
+    position, and merging them by position can pinch it); a mesh that is closed only once
+    coincident vertices are merged (a triangle soup, an STL) passes too."""
     if len(faces) == 0:
         raise EngineError(f"{name} has no faces")
-    m = trimesh.Trimesh(vertices=vertices, faces=faces, process=True, validate=False)
+    as_given = _closed_mesh_problem(vertices, faces, merge=False)
+    if as_given is None:
+        return
+    merged = _closed_mesh_problem(vertices, faces, merge=True)
+    if merged is None:
+        return
+    problem = min(as_given, merged)  # the reading with fewer bad edges says more
+    raise EngineError(f"{name} {problem[1]}")
+
+
+def _closed_mesh_problem(vertices, faces, merge: bool) -> tuple[int, str] | None:
+    """(number of bad edges, what is wrong), or None when closed, manifold and consistently wound."""
+    import trimesh
+
+    m = trimesh.Trimesh(vertices=vertices, faces=faces, process=merge, validate=False)
     edges = np.sort(m.edges, axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     open_edges = int((counts == 1).sum())
     nonmanifold = int((counts > 2).sum())
     if open_edges:
-        raise EngineError(f"{name} is open: {open_edges} edges belong to a single face (the cage needs a closed mesh)")
+        return open_edges, f"is open: {open_edges} edges belong to a single face (the cage needs a closed mesh)"
     if nonmanifold:
-        raise EngineError(f"{name} is non-manifold: {nonmanifold} edges are shared by more than two faces")
+        return nonmanifold, f"is non-manifold: {nonmanifold} edges are shared by more than two faces"
     if not m.is_winding_consistent:
-        raise EngineError(f"{name} has inconsistent face winding (normals flip between neighbouring faces)")
+        return 1, "has inconsistent face winding (normals flip between neighbouring faces)"
+    return None
 
 
 @dataclass

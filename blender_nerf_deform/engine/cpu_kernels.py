@@ -158,6 +158,16 @@ if HAVE_NUMBA:
                 param[r, f] -= lr * (mm / bc1) / (np.sqrt(vv / bc2) + eps)
 
 
+    @njit(inline="always", fastmath=True)
+    def _occupied_at(o, d, ray, t, lo, scale, r, mask):
+        """Whether the sample at t lies in an occupied cell; False outside the grid (as OccupancyGrid.occupied)."""
+        fx = np.floor((o[ray, 0] + d[ray, 0] * t - lo[0]) * scale[0])
+        fy = np.floor((o[ray, 1] + d[ray, 1] * t - lo[1]) * scale[1])
+        fz = np.floor((o[ray, 2] + d[ray, 2] * t - lo[2]) * scale[2])
+        if fx < 0 or fy < 0 or fz < 0 or fx >= r or fy >= r or fz >= r:
+            return False
+        return mask[int(fx) + r * int(fy) + r * r * int(fz)] != 0
+
     @njit(parallel=True, cache=True, fastmath=True)
     def _march_count(o, d, t0, t1, u, step, lo, scale, r, mask, counts):
         for ray in prange(o.shape[0]):
@@ -167,10 +177,7 @@ if HAVE_NUMBA:
                 t = t0[ray] + (k + u[ray]) * step
                 if t >= t1[ray]:
                     break
-                ix = min(max(int((o[ray, 0] + d[ray, 0] * t - lo[0]) * scale[0]), 0), r - 1)
-                iy = min(max(int((o[ray, 1] + d[ray, 1] * t - lo[1]) * scale[1]), 0), r - 1)
-                iz = min(max(int((o[ray, 2] + d[ray, 2] * t - lo[2]) * scale[2]), 0), r - 1)
-                if mask[ix + r * iy + r * r * iz]:
+                if _occupied_at(o, d, ray, t, lo, scale, r, mask):
                     n += 1
             counts[ray] = n
 
@@ -183,10 +190,7 @@ if HAVE_NUMBA:
                 t = t0[ray] + (k + u[ray]) * step
                 if t >= t1[ray]:
                     break
-                ix = min(max(int((o[ray, 0] + d[ray, 0] * t - lo[0]) * scale[0]), 0), r - 1)
-                iy = min(max(int((o[ray, 1] + d[ray, 1] * t - lo[1]) * scale[1]), 0), r - 1)
-                iz = min(max(int((o[ray, 2] + d[ray, 2] * t - lo[2]) * scale[2]), 0), r - 1)
-                if mask[ix + r * iy + r * r * iz]:
+                if _occupied_at(o, d, ray, t, lo, scale, r, mask):
                     ray_idx[n] = rays[ray]
                     ts[n] = t
                     n += 1

@@ -4,7 +4,11 @@
    per axis, chunked by z-slabs, with progress).
 2. Pad the grid with one layer of empty samples, so every surface closes even
    where the object touches the bounds, and run marching cubes
-   (scikit-image) at the density threshold, in world coordinates.
+   (scikit-image) at the density threshold, in world coordinates. Samples
+   within a hair of the threshold are first moved off it, and coincident
+   triangles are dropped afterwards: scikit-image's Lewiner tables leave holes
+   and doubled faces where samples or face tests tie at the level
+   (scikit-image issues 8116 and 8109), which the cage builder would refuse.
 3. Connected components (scipy's graph components) and their enclosed volume
    (divergence theorem, per face, summed per component); components below
    the volume threshold are dropped, and reported. By default the threshold is
@@ -130,16 +134,45 @@ def component_volumes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
     return labels, np.bincount(labels, weights=vol_face)
 
 
-def _weld(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Merge coincident vertices and drop zero-area triangles. Where the density equals the
-    threshold exactly at a grid point, marching cubes makes both, and together they leave edges
-    shared by more than two faces: a non-manifold mesh the cage builder rightly refuses."""
-    import trimesh
+def _off_the_level(grid: np.ndarray, level: float) -> np.ndarray:
+    """The grid (float32, as marching cubes reads it) with samples closer to `level` than a
+    relative 1e-5 moved to level +- that much, on their own side: where a sample equals the
+    level, scikit-image's cubes disagree on the faces they share and leave holes (issue 8116).
+    The surface moves by at most that tolerance over the local density slope."""
+    grid = np.asarray(grid, dtype=np.float32)
+    eps = np.float32(1e-5 * max(abs(level), 1.0))
+    lvl = np.float32(level)
+    near = np.abs(grid - lvl) < eps
+    if not near.any():
+        return grid
+    return np.where(near, np.where(grid >= lvl, lvl + eps, lvl - eps), grid)
 
-    mesh = trimesh.Trimesh(verts, faces, process=True, validate=False)
-    mesh.update_faces(mesh.nondegenerate_faces())
-    mesh.remove_unreferenced_vertices()
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+def _drop_coincident_faces(faces: np.ndarray) -> np.ndarray:
+    """Faces with the vertices of another face: a pair wound oppositely encloses nothing and both
+    go; of same-wound copies one stays. Marching cubes makes such pairs where a face's ambiguity
+    test ties at zero (scikit-image issue 8109), leaving edges shared by four faces."""
+    key = np.sort(faces, axis=1)
+    _, group, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    group = group.ravel()
+    repeated = np.flatnonzero(counts[group] > 1)
+    if len(repeated) == 0:
+        return faces
+    # +1 where the face is an even permutation (a rotation) of its sorted vertices.
+    f, k = faces[repeated], key[repeated]
+    even = (f == k).all(1) | (f == k[:, [1, 2, 0]]).all(1) | (f == k[:, [2, 0, 1]]).all(1)
+    sign = np.where(even, 1, -1)
+    net = np.zeros(len(counts), dtype=np.int64)
+    np.add.at(net, group[repeated], sign)
+    keep = np.ones(len(faces), dtype=bool)
+    keep[repeated] = False
+    kept_groups = set()
+    for i, s in zip(repeated, sign):  # one face per group, wound as the group's majority
+        g = group[i]
+        if net[g] != 0 and s == np.sign(net[g]) and g not in kept_groups:
+            keep[i] = True
+            kept_groups.add(g)
+    return faces[keep]
 
 
 def extract_mesh(
@@ -172,9 +205,13 @@ def extract_mesh(
     t0 = time.perf_counter()
     spacing = (b[1] - b[0]) / (resolution - 1)
     empty = min(float(grid.min()), threshold) - 1.0
-    padded = np.pad(grid, 1, mode="constant", constant_values=empty)
+    padded = _off_the_level(np.pad(grid, 1, mode="constant", constant_values=empty), threshold)
     verts, faces, _, _ = marching_cubes(padded, level=threshold, spacing=tuple(spacing))
-    verts, faces = _weld(verts.astype(np.float64) + (b[0] - spacing), faces.astype(np.int64))
+    # Vertices stay as marching cubes shares them (one per grid edge), none merged by position:
+    # near a sample at the level several lie within float precision of each other, and merging
+    # some of them but not others is what pinches the surface into non-manifold edges.
+    verts = verts.astype(np.float64) + (b[0] - spacing)
+    faces = _drop_coincident_faces(faces.astype(np.int64))
     timings["marching_cubes_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
