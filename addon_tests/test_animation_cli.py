@@ -80,7 +80,35 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
     settings.file_format, settings.color_mode, settings.color_depth = "PNG", "RGBA", "8"
     scene.frame_start, scene.frame_end = FRAMES[0], FRAMES[-1]
     scene.render.filepath = str(tmp_path / "blender" / "frame_")
-    assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    # The render solves each frame itself; the viewport preview asks the worker nothing meanwhile
+    # (its requests would queue ahead of the render's on the one worker).
+    from blender_nerf_deform.addon import deformation
+
+    events = []
+    original_request = deformation.AsyncSolver.request
+
+    def counting_request(self, params, arrays):
+        events.append(("preview solve", scene.frame_current))
+        return original_request(self, params, arrays)
+
+    def rendering(scene_, *_):
+        events.append(("render", scene_.frame_current))
+
+    deformation.AsyncSolver.request = counting_request
+    bpy.app.handlers.render_pre.append(rendering)
+    try:
+        scene.frame_set(2)  # outside a render, a frame change does ask for a preview solve
+        assert events == [("preview solve", 2)]
+        events.clear()
+        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+        renders = [i for i, (what, _) in enumerate(events) if what == "render"]
+        assert [events[i][1] for i in renders] == list(FRAMES)
+        assert all(what == "render" for what, _ in events[renders[0]:renders[-1] + 1]), events
+        # Only once the render is over does the preview catch up again (the restored frame 2).
+        assert ("preview solve", 2) in events[renders[-1]:], events
+    finally:
+        bpy.app.handlers.render_pre.remove(rendering)
+        deformation.AsyncSolver.request = original_request
 
     tet_ids, weights = load_embedding(surface.data)
     for frame in FRAMES:

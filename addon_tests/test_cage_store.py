@@ -122,3 +122,22 @@ def test_embedding_of_a_changed_mesh_is_refused(blender):
     mesh.vertices.add(1)
     with pytest.raises(CageDataError, match="has 4 vertices but was embedded with 3"):
         load_embedding(mesh)
+
+
+def test_loaded_cage_and_embedding_are_copies_not_views_of_the_id_properties(blender):
+    """A numpy view of an ID property reads freed memory once Blender frees it (undo, Build Cage
+    again, quitting; Blender then also reports 'Not freed memory blocks' at exit). Loads copy."""
+    bpy = blender
+    from blender_nerf_deform.addon.cage_store import EMBED_WEIGHTS_KEY, REST_KEY, load_cage, load_embedding, store_embedding
+
+    obj, vertices = _make_cage(bpy, np.random.default_rng(1))
+    rest, _tets = load_cage(obj.data)
+    obj.data[REST_KEY][0] = 123.0  # the stored data changes after the load
+    assert rest[0, 0] == vertices[0, 0]
+
+    surface = bpy.data.meshes.new("Surface")
+    surface.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [])
+    store_embedding(surface, np.zeros(3, int), np.full((3, 4), 0.25))
+    _ids, weights = load_embedding(surface)
+    surface[EMBED_WEIGHTS_KEY][0] = 7.0
+    assert weights[0, 0] == 0.25

@@ -12,7 +12,9 @@ process or on a farm, so its exact data lives in the file:
   barycentric weights per vertex, also as ID properties of its mesh.
 
 ID property arrays are stored compactly and read back through the buffer
-protocol, so a 100k-tet cage costs milliseconds to store and load.
+protocol, so a 100k-tet cage costs milliseconds to store and load. Reads copy:
+a numpy view of an ID property outlives it (undo, Build Cage again, quitting)
+and would then read freed memory.
 """
 
 from __future__ import annotations
@@ -66,8 +68,8 @@ def load_cage(cage_mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
     """(rest vertices (N,3) float64, tets (M,4) int64) as stored; checks they still match the mesh."""
     if not has_cage(cage_mesh):
         raise CageDataError(f"mesh '{cage_mesh.name}' holds no NeRF cage: run Build Cage")
-    rest = np.asarray(cage_mesh[REST_KEY], dtype=np.float64).reshape(-1, 3)
-    tets = np.asarray(cage_mesh[TETS_KEY], dtype=np.int64).reshape(-1, 4)
+    rest = np.array(cage_mesh[REST_KEY], dtype=np.float64).reshape(-1, 3)  # copies (module docstring)
+    tets = np.array(cage_mesh[TETS_KEY], dtype=np.int64).reshape(-1, 4)
     if len(cage_mesh.vertices) != len(rest):
         raise CageDataError(
             f"cage mesh '{cage_mesh.name}' has {len(cage_mesh.vertices)} vertices but its cage has {len(rest)}: "
@@ -125,6 +127,6 @@ def load_embedding(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
             f"mesh '{mesh.name}' has {len(mesh.vertices)} vertices but was embedded with {mesh.get(EMBED_COUNT_KEY)}: "
             "rebuild the cage (Build Cage)"
         )
-    tet_ids = np.asarray(mesh[EMBED_TET_KEY], dtype=np.int64)
-    weights = np.asarray(mesh[EMBED_WEIGHTS_KEY], dtype=np.float64).reshape(-1, 4)
+    tet_ids = np.array(mesh[EMBED_TET_KEY], dtype=np.int64)  # copies (module docstring)
+    weights = np.array(mesh[EMBED_WEIGHTS_KEY], dtype=np.float64).reshape(-1, 4)
     return tet_ids, weights

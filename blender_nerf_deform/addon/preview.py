@@ -13,6 +13,11 @@ waiting: the answer updates the mesh when it arrives, and while a solve runs
 only the newest pose waits behind it. The handler runs after every depsgraph
 update and frame change, is guarded against re-entrancy (writing the shape key
 triggers another update), and skips NeRFs whose pose did not change.
+
+While a render job runs, its frame changes ask the worker for no preview
+solves: the render engine solves each frame itself on the same worker, and a
+blocking (`blender -b`) render never collects an answer anyway. Cage Modifiers
+previews, computed on the spot, keep following the frames.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from .worker_client import WorkerError
 PREVIEW_KEY = "NeRF Deform"
 
 _updating = False
+_rendering = False  # between render_init and render_complete / render_cancel
 _last_pose: dict[str, bytes] = {}
 _solvers: dict[str, AsyncSolver] = {}
 
@@ -107,7 +113,8 @@ def update_all(depsgraph) -> None:
             try:
                 positions = preview_positions(nerf, depsgraph)
                 if positions is None:
-                    _solve_in_background(nerf, depsgraph)
+                    if not _rendering:
+                        _solve_in_background(nerf, depsgraph)
                     continue
             except (CageDataError, WorkerError) as error:
                 print(f"NeRF Deform preview of {nerf.name}: {error}")
@@ -131,14 +138,35 @@ def _on_frame_change(scene, depsgraph):
     update_all(depsgraph)
 
 
+@bpy.app.handlers.persistent
+def _on_render_init(*_args):
+    global _rendering
+    _rendering = True
+
+
+@bpy.app.handlers.persistent
+def _on_render_end(*_args):
+    global _rendering
+    _rendering = False
+    _last_pose.clear()  # the next update shows the pose of the frame the scene is back on
+
+
+def _handlers():
+    h = bpy.app.handlers
+    return ((h.depsgraph_update_post, _on_depsgraph_update), (h.frame_change_post, _on_frame_change),
+            (h.render_init, _on_render_init), (h.render_complete, _on_render_end), (h.render_cancel, _on_render_end))
+
+
 def register():
-    bpy.app.handlers.depsgraph_update_post.append(_on_depsgraph_update)
-    bpy.app.handlers.frame_change_post.append(_on_frame_change)
+    for handlers, fn in _handlers():
+        handlers.append(fn)
 
 
 def unregister():
-    for handlers, fn in ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update), (bpy.app.handlers.frame_change_post, _on_frame_change)):
+    global _rendering
+    for handlers, fn in _handlers():
         if fn in handlers:
             handlers.remove(fn)
+    _rendering = False
     _last_pose.clear()
     _solvers.clear()

@@ -59,10 +59,23 @@ def _read_exact(stream: BinaryIO, n: int) -> bytes:
     return b"".join(chunks)
 
 
+def _read_exact_writable(stream: BinaryIO, n: int) -> bytearray:
+    """n bytes into a fresh bytearray, so the arrays viewing it are writable (torch warns on
+    read-only numpy arrays and would share them as if they were writable)."""
+    buf = bytearray(n)
+    view, got = memoryview(buf), 0
+    while got < n:
+        k = stream.readinto(view[got:])
+        if not k:
+            raise ProtocolError(f"stream ended {n - got} bytes into a {n}-byte read (truncated message)")
+        got += k
+    return buf
+
+
 def read_message(stream: BinaryIO) -> tuple[dict, dict[str, np.ndarray]] | None:
     """The next (header, arrays), or None when the stream ended cleanly between messages.
 
-    Arrays are read-only views of the received bytes; copy one to modify it."""
+    Each array is a writable view of its own received bytes."""
     start = stream.read(len(MAGIC))
     if not start:
         return None
@@ -82,6 +95,6 @@ def read_message(stream: BinaryIO) -> tuple[dict, dict[str, np.ndarray]] | None:
     if specs:
         import numpy as np
     for spec in specs:
-        data = _read_exact(stream, spec["nbytes"])
+        data = _read_exact_writable(stream, spec["nbytes"])
         arrays[spec["name"]] = np.frombuffer(data, dtype=np.dtype(spec["dtype"])).reshape(spec["shape"])
     return header, arrays
