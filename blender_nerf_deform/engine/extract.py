@@ -166,12 +166,10 @@ def _drop_coincident_faces(faces: np.ndarray) -> np.ndarray:
     np.add.at(net, group[repeated], sign)
     keep = np.ones(len(faces), dtype=bool)
     keep[repeated] = False
-    kept_groups = set()
-    for i, s in zip(repeated, sign):  # one face per group, wound as the group's majority
-        g = group[i]
-        if net[g] != 0 and s == np.sign(net[g]) and g not in kept_groups:
-            keep[i] = True
-            kept_groups.add(g)
+    # One face per group, wound as the group's majority (a cancelling group, net 0, keeps none).
+    majority = repeated[sign == np.sign(net[group[repeated]])]
+    _, first = np.unique(group[majority], return_index=True)
+    keep[majority[first]] = True
     return faces[keep]
 
 

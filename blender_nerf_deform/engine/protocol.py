@@ -48,20 +48,9 @@ def write_message(stream: BinaryIO, header: dict, arrays: dict[str, np.ndarray] 
     stream.flush()
 
 
-def _read_exact(stream: BinaryIO, n: int) -> bytes:
-    chunks, left = [], n
-    while left:
-        chunk = stream.read(left)
-        if not chunk:
-            raise ProtocolError(f"stream ended {left} bytes into a {n}-byte read (truncated message)")
-        chunks.append(chunk)
-        left -= len(chunk)
-    return b"".join(chunks)
-
-
-def _read_exact_writable(stream: BinaryIO, n: int) -> bytearray:
-    """n bytes into a fresh bytearray, so the arrays viewing it are writable (torch warns on
-    read-only numpy arrays and would share them as if they were writable)."""
+def _read_exact(stream: BinaryIO, n: int) -> bytearray:
+    """n bytes into a fresh bytearray: the arrays viewing it are writable (torch warns on read-only
+    numpy arrays and would share them as if they were writable)."""
     buf = bytearray(n)
     view, got = memoryview(buf), 0
     while got < n:
@@ -95,6 +84,6 @@ def read_message(stream: BinaryIO) -> tuple[dict, dict[str, np.ndarray]] | None:
     if specs:
         import numpy as np
     for spec in specs:
-        data = _read_exact_writable(stream, spec["nbytes"])
+        data = _read_exact(stream, spec["nbytes"])
         arrays[spec["name"]] = np.frombuffer(data, dtype=np.dtype(spec["dtype"])).reshape(spec["shape"])
     return header, arrays
