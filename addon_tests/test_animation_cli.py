@@ -3,8 +3,8 @@ rendering the same cage poses from the same camera.
 
 The add-on side is what a user does: Load NeRF, Build Cage, Pin Selection, Add Handle, keyframes on
 the handle, `bpy.ops.render.render(animation=True)`. The command-line side gets, per frame, the cage
-pose the add-on's own path computes for that frame (render_engine.deformation_arrays after
-frame_set), the rest cage as CAGE.npz, and the camera as transforms.json written from the add-on's
+pose the add-on's own path computes for that frame (deformation.deformed_cage after
+frame_set: the worker's solve, as a render runs it), the rest cage as CAGE.npz, and the camera as transforms.json written from the add-on's
 camera model (addon/camera.py), and runs `python -m blender_nerf_deform.engine render --cage
 --deformed`. The poses are also checked against the keyframes themselves, so a render that ignored
 the frame's handle pose (or the handles altogether) could not pass.
@@ -45,8 +45,10 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
 
     from blender_nerf_deform.addon.camera import pinhole_from_blender
     from blender_nerf_deform.addon.cage_store import load_embedding
-    from blender_nerf_deform.addon.render_engine import deformation_arrays
-    from blender_nerf_deform.engine.mesh_io import save_cage
+    from blender_nerf_deform.addon import jobs
+    from blender_nerf_deform.addon.cage_store import load_cage
+    from blender_nerf_deform.addon.deformation import deformed_cage
+    from blender_nerf_deform.engine.geometry.mesh_io import save_cage
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
@@ -114,8 +116,8 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
     for frame in FRAMES:
         scene.frame_set(frame)
         depsgraph = bpy.context.evaluated_depsgraph_get()
-        arrays = deformation_arrays(nerf, depsgraph)
-        rest, tets, deformed = arrays["rest_vertices"], arrays["tets"], arrays["deformed_vertices"]
+        rest, tets = load_cage(nerf.nerf_deform.cage.data)
+        deformed = deformed_cage(nerf, depsgraph, jobs.worker(bpy.context))
 
         # The pose is the keyframe's: the handle's region, carried by the deformed cage, sits where
         # the keyed rotation and translation (about the handle's rest centroid) put it.

@@ -111,7 +111,7 @@ def test_moved_checkpoint_is_named_by_render_and_extract_and_both_work_once_it_i
 def _nerf_in_a_box_cage(bpy, ckpt):
     """A NeRF whose cage (Cage Modifiers mode) is a box around its whole scene box."""
     from blender_nerf_deform.addon.cage_store import store_cage
-    from blender_nerf_deform.engine.cage import box_cage
+    from blender_nerf_deform.engine.geometry.cage import box_cage
 
     assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
     nerf = bpy.context.active_object

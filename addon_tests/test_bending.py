@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from blender_nerf_deform.engine.cage import box_cage
+from blender_nerf_deform.engine.geometry.cage import box_cage
 
 
 def _psnr(a, b):
@@ -16,8 +16,8 @@ def _psnr(a, b):
 
 @pytest.fixture(scope="module")
 def scene(sphere_nerf):
-    from blender_nerf_deform.engine.checkpoint import load_nerf
-    from blender_nerf_deform.engine.renderer import Camera
+    from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
+    from blender_nerf_deform.engine.nerf.renderer import Camera
 
     ckpt, data = sphere_nerf
     model = load_nerf(ckpt, device="cpu")
@@ -30,7 +30,7 @@ def scene(sphere_nerf):
 
 
 def _render(model, camera, bend=None):
-    from blender_nerf_deform.engine.renderer import render_image
+    from blender_nerf_deform.engine.nerf.renderer import render_image
 
     kw = {"sample_transform": bend.sample_transform, "occupancy": bend.occupancy} if bend else {}
     return render_image(model, camera, **kw)["rgba"]
@@ -38,7 +38,7 @@ def _render(model, camera, bend=None):
 
 @pytest.mark.slow
 def test_identity_deformation_reproduces_the_undeformed_render(scene):
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     model, camera, rest, tets = scene
     plain = _render(model, camera)
@@ -51,7 +51,7 @@ def test_identity_deformation_reproduces_the_undeformed_render(scene):
 def test_moving_the_whole_cage_equals_moving_the_camera_back(scene):
     from dataclasses import replace
 
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     model, camera, rest, tets = scene
     shift = np.array([0.3, -0.2, 0.25])
@@ -67,7 +67,7 @@ def test_moving_the_whole_cage_equals_moving_the_camera_back(scene):
 def test_degenerate_and_inverted_tets_give_finite_maps_and_are_counted(scene):
     import torch
 
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     model, camera, rest, tets = scene
     deformed = rest.copy()
@@ -95,7 +95,7 @@ def _cli(*args):
 def test_cli_render_through_a_cage(sphere_nerf, tmp_path):
     from PIL import Image
 
-    from blender_nerf_deform.engine.mesh_io import save_cage
+    from blender_nerf_deform.engine.geometry.mesh_io import save_cage
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from blender_nerf_deform.engine.cage import box_cage
+from blender_nerf_deform.engine.geometry.cage import box_cage
 from nerf_fixtures import RADIUS, look_at
 
 
@@ -19,13 +19,13 @@ def _psnr(a, b):
 
 @pytest.fixture(scope="module")
 def model(sphere_nerf):
-    from blender_nerf_deform.engine.checkpoint import load_nerf
+    from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
 
     return load_nerf(sphere_nerf[0], device="cpu")
 
 
 def _camera(eye, size, angle, target=(0.0, 0.0, 0.0)):
-    from blender_nerf_deform.engine.renderer import Camera
+    from blender_nerf_deform.engine.nerf.renderer import Camera
 
     return Camera.from_fov(look_at(eye, target), size, size, angle)
 
@@ -43,7 +43,7 @@ def _premultiplied(rgba):
 
 
 def _render(model, camera, bend=None):
-    from blender_nerf_deform.engine.renderer import render_image
+    from blender_nerf_deform.engine.nerf.renderer import render_image
 
     kw = {"sample_transform": bend.sample_transform, "occupancy": bend.occupancy} if bend else {}
     return render_image(model, camera, **kw)["rgba"]
@@ -55,7 +55,7 @@ FAR = dict(size=64, angle=0.36)
 
 @pytest.mark.slow
 def test_translating_a_part_empties_its_old_place_and_draws_it_at_the_new_one(model):
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     camera = _camera((8.0, 0.0, 0.6), target=(0.0, 0.0, 0.6), **FAR)
     # A cage around the cap of the sphere above z = 0.3 only; lifted by 0.5, the rest of the sphere stays.
@@ -87,7 +87,7 @@ def test_translating_a_part_empties_its_old_place_and_draws_it_at_the_new_one(mo
 
 @pytest.mark.slow
 def test_widening_along_one_axis_widens_the_silhouette_by_the_scale(model):
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     camera = _camera((0.0, -8.0, 0.0), **FAR)  # image x = world x, image up = world z
     rest, tets = box_cage((4, 4, 4), lo=(-1.5,) * 3, hi=(1.5,) * 3)
@@ -103,7 +103,7 @@ def test_widening_along_one_axis_widens_the_silhouette_by_the_scale(model):
 def test_inverted_tets_give_no_nan_and_no_hole(model):
     import torch
 
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     # 1. A mirror of the whole cage turns every tet inside out; the sphere must come back whole:
     #    the mirrored scene from a camera is the plain scene from the mirrored camera, flipped left-right.
@@ -145,7 +145,7 @@ def test_inverted_tets_give_no_nan_and_no_hole(model):
 
 @pytest.mark.slow
 def test_a_slow_twist_renders_consecutive_frames_that_differ_smoothly(model):
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     def twist(V, rate):
         a = rate * V[:, 2]
@@ -180,9 +180,9 @@ def _cli(*args):
 def test_cli_renders_an_animation_from_a_folder_of_poses(sphere_nerf, model, tmp_path):
     from PIL import Image
 
-    from blender_nerf_deform.engine.bending import CageBend
-    from blender_nerf_deform.engine.mesh_io import save_cage
-    from blender_nerf_deform.engine.renderer import Camera
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
+    from blender_nerf_deform.engine.geometry.mesh_io import save_cage
+    from blender_nerf_deform.engine.nerf.renderer import Camera
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
@@ -236,7 +236,7 @@ def test_the_cpu_kernels_and_the_torch_path_agree(model):
     """The torch path is what CUDA runs: same deformed occupancy and same samples as the numba kernels."""
     import torch
 
-    from blender_nerf_deform.engine.bending import CageBend
+    from blender_nerf_deform.engine.bend.cage_bend import CageBend
 
     rest, tets = box_cage((5, 5, 5), lo=(-1.2,) * 3, hi=(1.2,) * 3)
     a = 0.4 * np.clip(rest[:, 2], 0, None)  # twist the upper half
@@ -247,10 +247,13 @@ def test_the_cpu_kernels_and_the_torch_path_agree(model):
     dirs = torch.nn.functional.normalize(torch.as_tensor(np.random.default_rng(2).normal(size=(50000, 3)),
                                                          dtype=torch.float32), dim=1)
     results = []
-    for kernels in (True, False):
-        bend.use_kernels = kernels
-        bend.set_deformed(posed)
-        results.append((bend.occupancy.aabb, bend.occupancy.mask, *bend.sample_transform(pts, dirs)))
+    from blender_nerf_deform.engine import backend
+
+    for path in ("auto", "torch"):
+        with backend.forced(path):
+            assert bend.use_kernels == (path == "auto")
+            bend.set_deformed(posed)
+            results.append((bend.occupancy.aabb, bend.occupancy.mask, *bend.sample_transform(pts, dirs)))
     (box_k, mask_k, p_k, d_k, keep_k), (box_t, mask_t, p_t, d_t, keep_t) = results
     assert torch.equal(box_k, box_t) and torch.equal(mask_k, mask_t)
     assert mask_k.any() and keep_k.any() and not keep_k.all()

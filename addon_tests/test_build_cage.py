@@ -23,7 +23,7 @@ def _nerf(bpy, with_surface=True):
 def test_build_cage_stores_a_cage_that_embeds_the_surface(addon):
     bpy = addon
     from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
-    from blender_nerf_deform.engine.barycentric import signed_volumes
+    from blender_nerf_deform.engine.geometry.barycentric import signed_volumes
 
     nerf, surface = _nerf(bpy)
     assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
@@ -51,7 +51,7 @@ def test_build_cage_before_extract_mesh_says_what_to_do(addon):
 
 
 def test_building_a_cage_writes_nothing_into_the_working_directory(tmp_path, monkeypatch):
-    from blender_nerf_deform.engine.cage import box_cage, boundary_faces, build_cage
+    from blender_nerf_deform.engine.geometry.cage import box_cage, boundary_faces, build_cage
 
     v, t = box_cage((2, 2, 2))
     monkeypatch.chdir(tmp_path)

@@ -19,7 +19,7 @@ def _enclosed_volume(vertices, faces):
 
 
 def test_boundary_of_a_tetrahedralized_cube_is_its_12_outward_triangles():
-    from blender_nerf_deform.engine.barycentric import boundary_faces
+    from blender_nerf_deform.engine.geometry.barycentric import boundary_faces
 
     faces = boundary_faces(CUBE_TETS, CUBE)
     assert len(faces) == 12

@@ -29,8 +29,8 @@ def trained_sphere(tmp_path_factory):
 
 @pytest.mark.slow
 def test_extract_and_cage_a_briefly_trained_nerf(trained_sphere):
-    from blender_nerf_deform.engine.embedding import locate
-    from blender_nerf_deform.engine.mesh_io import load_cage, read_ply
+    from blender_nerf_deform.engine.geometry.embedding import locate
+    from blender_nerf_deform.engine.geometry.mesh_io import load_cage, read_ply
 
     ckpt, root = trained_sphere
     mesh = root / "sphere.ply"
@@ -70,7 +70,7 @@ def test_extract_and_cage_cli_errors(trained_sphere, tmp_path):
     proc = _cli("extract", "--nerf", ckpt, "--out", out, "--resolution", "48", "--threshold", "1", "--min-volume", "100", check=False)
     assert proc.returncode == 2 and "no component left above the volume threshold 100" in proc.stderr and not out.exists()
     bad = tmp_path / "open.ply"
-    from blender_nerf_deform.engine.mesh_io import write_ply
+    from blender_nerf_deform.engine.geometry.mesh_io import write_ply
 
     write_ply(bad, np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
     cage = tmp_path / "c.npz"

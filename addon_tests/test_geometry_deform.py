@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blender_nerf_deform.engine.cage import box_cage
-from blender_nerf_deform.engine.deform import (
+from blender_nerf_deform.engine.geometry.cage import box_cage
+from blender_nerf_deform.engine.geometry.deform import (
     ArapDeformer,
     affine_region,
     edge_length_distortion,
@@ -58,7 +58,7 @@ def test_cube_arap_keeps_edge_lengths_far_better_than_linear_blending():
     e_arap = edge_length_distortion(V, res.vertices, T)
     e_blend = edge_length_distortion(V, blended, T)
     assert e_arap < 0.5 * e_blend, (e_arap, e_blend)
-    from blender_nerf_deform.engine.barycentric import inversion_report
+    from blender_nerf_deform.engine.geometry.barycentric import inversion_report
 
     assert inversion_report(V, res.vertices, T).n_inverted == 0
 
@@ -146,7 +146,7 @@ def test_bad_handle_regions_are_rejected():
 
 
 def test_regions_chosen_on_the_surface_map_to_cage_vertices():
-    from blender_nerf_deform.engine.embedding import embed_points
+    from blender_nerf_deform.engine.geometry.embedding import embed_points
 
     V, T = box_cage((5, 5, 5), (-1, -1, -1), (1, 1, 1))
     rng = np.random.default_rng(0)

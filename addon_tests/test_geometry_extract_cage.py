@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from blender_nerf_deform.engine.errors import EngineError
-from blender_nerf_deform.engine.extract import extract_mesh, sample_grid
+from blender_nerf_deform.engine.geometry.extract import extract_mesh, sample_grid
 
 BOUNDS = [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]
 FLOATERS = [(1.0, 1.0, 1.0), (-1.1, 0.8, -0.9), (0.9, -1.2, 0.2), (-1.2, -1.2, 1.2)]
@@ -64,7 +64,7 @@ def test_extraction_finds_the_object_and_drops_the_planted_floaters(extracted):
 
 
 def test_report_counts_every_dropped_component_beyond_those_described(monkeypatch):
-    from blender_nerf_deform.engine import extract
+    from blender_nerf_deform.engine.geometry import extract
 
     monkeypatch.setattr(extract, "MAX_DESCRIBED", 2)  # fewer than the planted floaters
     res = extract_mesh(scene_density, BOUNDS, resolution=80)
@@ -96,7 +96,7 @@ def test_grid_indexing_matches_world_coordinates():
 
 
 def test_ply_round_trip_and_atomic_write(tmp_path, extracted):
-    from blender_nerf_deform.engine.mesh_io import read_ply, write_ply
+    from blender_nerf_deform.engine.geometry.mesh_io import read_ply, write_ply
 
     path = tmp_path / "mesh.ply"
     write_ply(path, extracted.vertices, extracted.faces, extracted.colors)
@@ -135,7 +135,7 @@ def test_atomic_write_gives_the_permissions_of_a_plain_write_and_keeps_a_replace
 
 @pytest.fixture(scope="module")
 def cage(extracted):
-    from blender_nerf_deform.engine.cage import build_cage
+    from blender_nerf_deform.engine.geometry.cage import build_cage
 
     return build_cage(extracted.vertices, extracted.faces, margin=0.05)
 
@@ -143,9 +143,9 @@ def cage(extracted):
 def test_every_surface_point_lies_inside_the_cage_with_the_margin(extracted, cage):
     import igl
 
-    from blender_nerf_deform.engine.barycentric import signed_volumes
-    from blender_nerf_deform.engine.cage import boundary_faces
-    from blender_nerf_deform.engine.embedding import locate
+    from blender_nerf_deform.engine.geometry.barycentric import signed_volumes
+    from blender_nerf_deform.engine.geometry.cage import boundary_faces
+    from blender_nerf_deform.engine.geometry.embedding import locate
 
     assert (signed_volumes(cage.vertices, cage.tets) > 0).all()
     # Not only vertices: points all over the surface's triangles.
@@ -163,7 +163,7 @@ def test_every_surface_point_lies_inside_the_cage_with_the_margin(extracted, cag
 def test_a_cage_that_does_not_clear_the_object_is_rejected(extracted, cage):
     """Every fTetWild result is validated (a rejected one is rebuilt): a cage around the bare surface,
     with no offset, cannot clear a 0.05 margin, whatever fTetWild returns."""
-    from blender_nerf_deform.engine.cage import _tetrahedralize_checked
+    from blender_nerf_deform.engine.geometry.cage import _tetrahedralize_checked
 
     assert cage.timings["attempts"] == 1  # the usual case: the first build is accepted
     V, F = extracted.vertices, extracted.faces
@@ -174,7 +174,7 @@ def test_a_cage_that_does_not_clear_the_object_is_rejected(extracted, cage):
 
 
 def test_cage_file_round_trip_and_degenerate_cage_error(tmp_path, cage):
-    from blender_nerf_deform.engine.mesh_io import load_cage, save_cage
+    from blender_nerf_deform.engine.geometry.mesh_io import load_cage, save_cage
 
     path = tmp_path / "cage.npz"
     save_cage(path, cage.vertices, cage.tets, margin=cage.margin)
@@ -196,7 +196,7 @@ def test_cage_file_round_trip_and_degenerate_cage_error(tmp_path, cage):
 def test_cage_rejects_open_and_non_manifold_meshes():
     import trimesh
 
-    from blender_nerf_deform.engine.cage import build_cage
+    from blender_nerf_deform.engine.geometry.cage import build_cage
 
     box = trimesh.creation.box()
     with pytest.raises(EngineError, match="open"):
@@ -208,7 +208,7 @@ def test_cage_rejects_open_and_non_manifold_meshes():
 
 
 def test_surface_embedding_follows_the_cage(extracted, cage):
-    from blender_nerf_deform.engine.embedding import embed_points
+    from blender_nerf_deform.engine.geometry.embedding import embed_points
 
     emb = embed_points(extracted.vertices, cage.vertices, cage.tets)
     assert emb.n_outside == 0
@@ -231,13 +231,13 @@ def test_the_embedding_module_is_pure_numpy():
 
     from conftest import REPO
 
-    code = "import sys; sys.modules['torch'] = None; import blender_nerf_deform.engine.embedding, blender_nerf_deform.engine.mesh_io; print('ok')"
+    code = "import sys; sys.modules['torch'] = None; import blender_nerf_deform.engine.geometry.embedding, blender_nerf_deform.engine.geometry.mesh_io; print('ok')"
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
 
 
 def test_optional_decimation_keeps_a_closed_surface_of_the_requested_size():
-    from blender_nerf_deform.engine.cage import check_closed_mesh
+    from blender_nerf_deform.engine.geometry.cage import check_closed_mesh
 
     res = extract_mesh(object_density, BOUNDS, resolution=64, decimate=2000, colour_fn=_colour)
     assert 1500 <= len(res.faces) <= 2000
@@ -247,10 +247,11 @@ def test_optional_decimation_keeps_a_closed_surface_of_the_requested_size():
 
 
 def test_density_exactly_at_the_threshold_on_grid_points_still_gives_a_closed_manifold_mesh():
-    """Marching cubes makes zero-area triangles and coincident vertices where grid samples equal the
-    threshold; extraction must weld them so the cage builder gets a closed manifold mesh."""
-    from blender_nerf_deform.engine.cage import check_closed_mesh
-    from blender_nerf_deform.engine.extract import extract_mesh
+    """Where grid samples equal the threshold, scikit-image's marching cubes leaves holes and doubled
+    faces; extraction moves such samples off the level and drops coincident faces, so the cage
+    builder gets a closed manifold mesh."""
+    from blender_nerf_deform.engine.geometry.cage import check_closed_mesh
+    from blender_nerf_deform.engine.geometry.extract import extract_mesh
 
     n = 24
     axis = np.linspace(-1, 1, n)
@@ -271,8 +272,8 @@ def test_samples_and_face_tests_tied_at_the_threshold_still_give_a_closed_manifo
     the level (its issue 8116) and doubled faces where a face's ambiguity test ties at zero (issue
     8109); a 60 s lego NeRF hit the second (one edge shared by four faces, refused by the cage).
     Random blobby fields made of such ties: every extracted mesh must pass the cage's check."""
-    from blender_nerf_deform.engine.cage import check_closed_mesh
-    from blender_nerf_deform.engine.extract import extract_mesh
+    from blender_nerf_deform.engine.geometry.cage import check_closed_mesh
+    from blender_nerf_deform.engine.geometry.extract import extract_mesh
 
     rng = np.random.default_rng(7)
     n = 20
@@ -296,8 +297,8 @@ def test_doubled_faces_from_a_tied_face_test_are_dropped():
     and marching cubes emits two pairs of coincident, oppositely wound triangles there."""
     from skimage.measure import marching_cubes
 
-    from blender_nerf_deform.engine.cage import check_closed_mesh
-    from blender_nerf_deform.engine.extract import extract_mesh
+    from blender_nerf_deform.engine.geometry.cage import check_closed_mesh
+    from blender_nerf_deform.engine.geometry.extract import extract_mesh
 
     grid = np.full((5, 5, 5), -1.0)
     grid[1:4, 1:3, 1:3] = [[[13, -1], [-1, -7]], [[-1, 1], [7, -7]], [[15, -9], [-3, -1]]]

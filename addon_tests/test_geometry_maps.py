@@ -5,17 +5,27 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blender_nerf_deform.engine.barycentric import (
-    barycentric,
+from blender_nerf_deform.engine.geometry.barycentric import (
     deformed_to_rest_affines,
     inversion_report,
-    map_points,
     signed_volumes,
     tet_inverses,
     tet_matrices,
 )
-from blender_nerf_deform.engine.cage import box_cage, boundary_faces
+from blender_nerf_deform.engine.geometry.cage import box_cage, boundary_faces
 from blender_nerf_deform.engine.errors import EngineError
+
+
+def barycentric(points, tet_ids, inverses):
+    """Reference: (N, 4) barycentric coordinates of each point in its tet, from every tet's T⁻¹."""
+    Ti = inverses[np.asarray(tet_ids)]
+    return np.einsum("nij,nj->ni", Ti[:, :, :3], np.asarray(points, dtype=np.float64)) + Ti[:, :, 3]
+
+
+def map_points(points, tet_ids, affines):
+    """Reference: each point through its tet's affine."""
+    A = affines[np.asarray(tet_ids)]
+    return np.einsum("nij,nj->ni", A[:, :3, :3], np.asarray(points, dtype=np.float64)) + A[:, :3, 3]
 
 
 def _jittered_box(n=5, seed=0):
@@ -145,7 +155,7 @@ def _igl_locate(V, T, Q):
 def test_point_location_agrees_with_igl_in_element(backend, dtype_name):
     import torch
 
-    from blender_nerf_deform.engine.point_location import TetLocator
+    from blender_nerf_deform.engine.geometry.locate import TetLocator
 
     V, T = _jittered_box(8, seed=2)
     # Warp it into a non-convex, non-uniform shape so cells hold tets of many sizes.
@@ -193,7 +203,7 @@ def test_point_location_agrees_with_igl_in_element(backend, dtype_name):
 def test_point_location_of_points_on_vertices_faces_and_far_away(backend):
     import torch
 
-    from blender_nerf_deform.engine.point_location import TetLocator
+    from blender_nerf_deform.engine.geometry.locate import TetLocator
 
     if backend == "numba":
         pytest.importorskip("numba")
@@ -207,35 +217,9 @@ def test_point_location_of_points_on_vertices_faces_and_far_away(backend):
     assert (loc.locate(far).numpy() == -1).all()
 
 
-def test_cage_warp_maps_deformed_samples_to_rest_and_flags_vacated_space():
-    import torch
-
-    from blender_nerf_deform.engine.point_location import CageWarp
-
-    V, T = box_cage((4, 4, 4), (-1, -1, -1), (1, 1, 1))
-    A = _random_affine(9)
-    A[:3, :3] = np.diag([0.5, 1.0, 1.0])  # squash along x: space at |x| in (0.5, 1] is vacated
-    A[:3, 3] = 0
-    Vd = V @ A[:3, :3].T
-    warp = CageWarp(V, T, dtype=torch.float64)
-    warp.set_deformed(Vd)
-    rng = np.random.default_rng(10)
-    P = rng.uniform(-1.5, 1.5, (20000, 3))
-    rest, status = warp.warp(P)
-    rest, status = rest.numpy(), status.numpy()
-    inside_def = np.all(np.abs(P) < [0.5, 1, 1], axis=1)
-    inside_rest = np.all(np.abs(P) < 1, axis=1)
-    assert np.array_equal(status[inside_def], np.full(inside_def.sum(), CageWarp.INSIDE))
-    assert np.allclose(rest[inside_def], P[inside_def] * [2.0, 1.0, 1.0], atol=1e-9)
-    vac = inside_rest & ~np.all(np.abs(P) <= [0.5, 1, 1], axis=1)
-    assert (status[vac] == CageWarp.VACATED).all()
-    out = ~np.all(np.abs(P) <= 1, axis=1)
-    assert (status[out] == CageWarp.OUTSIDE).all() and np.allclose(rest[out], P[out])
-
-
 @pytest.mark.parametrize("backend", ["torch", "numba"])
 def test_locator_rejects_a_degenerate_cage(backend):
-    from blender_nerf_deform.engine.point_location import TetLocator
+    from blender_nerf_deform.engine.geometry.locate import TetLocator
 
     if backend == "numba":
         pytest.importorskip("numba")
@@ -250,7 +234,7 @@ def test_numba_grid_lists_candidates_best_first_whatever_the_thread_count():
     """Each cell lists its tets best first (the tet nearest to covering the cell's centre), and the
     build is deterministic: the same lists with one thread as with all of them."""
     numba = pytest.importorskip("numba")
-    from blender_nerf_deform.engine.locate_kernels import NumbaGrid
+    from blender_nerf_deform.engine.geometry.locate_kernels import NumbaGrid
 
     V, T = _jittered_box(6, seed=3)
     n_threads = numba.get_num_threads()

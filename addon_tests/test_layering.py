@@ -67,3 +67,43 @@ def test_checker_allows_pure_numpy_engine_modules_in_addon(tmp_path):
     _write(root, "engine/embedding.py", "import numpy as np\n")
     _write(root, "addon/ops.py", "import bpy\nfrom ..engine.embedding import np\n")
     assert violations(root) == []
+
+
+def test_checker_catches_an_import_cycle_in_the_engine(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "engine/nerf/__init__.py", "")
+    _write(root, "engine/nerf/a.py", "from . import b\n")
+    _write(root, "engine/nerf/b.py", "def f():\n    from .a import g\n")
+    (problem,) = violations(root)
+    assert "import cycle" in problem and "nerf.a" in problem and "nerf.b" in problem
+
+
+def test_checker_catches_stage_logic_in_the_plumbing(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "engine/cli/__init__.py", "")
+    _write(root, "engine/cli/cage.py", "import numpy as np\n\ndef main(args):\n    import pytetwild\n")
+    _write(root, "engine/service/__init__.py", "")
+    _write(root, "engine/service/ops.py", "import torch\n")
+    problems = violations(root)
+    assert len(problems) == 2
+    assert any("engine/cli/cage.py:4" in p and "pytetwild" in p for p in problems)
+    assert any("engine/service/ops.py:1" in p and "torch" in p for p in problems)
+
+
+def test_checker_catches_a_stage_importing_the_plumbing(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "engine/service/__init__.py", "")
+    _write(root, "engine/service/worker.py", "")
+    _write(root, "engine/geometry/__init__.py", "")
+    _write(root, "engine/geometry/cage.py", "from ..service import worker\n")
+    (problem,) = [p for p in violations(root) if "stage module" in p]
+    assert "engine/geometry/cage.py:1" in problem
+
+
+def test_checker_follows_an_import_through_the_packages_above_it(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "engine/geometry/__init__.py", "import torch\n")
+    _write(root, "engine/geometry/embedding.py", "import numpy as np\n")
+    _write(root, "addon/ops.py", "from ..engine.geometry.embedding import np\n")
+    (problem,) = violations(root)
+    assert "reaches torch" in problem and "addon/ops.py:1" in problem

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from blender_nerf_deform.engine.dataset import load_dataset
+from blender_nerf_deform.engine.nerf.dataset import load_dataset
 from blender_nerf_deform.engine.errors import EngineError
 
 from conftest import REPO, SHARED_DATASETS

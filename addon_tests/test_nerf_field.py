@@ -7,11 +7,20 @@ import pytest
 import torch
 from scipy.interpolate import RegularGridInterpolator
 
-from blender_nerf_deform.engine.cpu_kernels import HAVE_NUMBA
-from blender_nerf_deform.engine.hashgrid import HashEncoding, reference_hash_encode, sh_encode
-from blender_nerf_deform.engine.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine import backend
+from blender_nerf_deform.engine.nerf.encoding import HashEncoding, reference_hash_encode, sh_encode
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 
-PATHS = ["torch"] + (["kernels"] if HAVE_NUMBA else [])
+PATHS = ["torch"] + (["kernels"] if backend.HAVE_NUMBA else [])
+
+
+@pytest.fixture(autouse=True)
+def _code_path(request):
+    """Tests parametrized by `path` run on that code path (backend.py decides it for the whole engine)."""
+    callspec = getattr(request.node, "callspec", None)
+    path = callspec.params.get("path") if callspec is not None else None
+    with backend.forced("torch" if path == "torch" else "auto"):
+        yield
 
 
 def _encoding(path, **kw):
@@ -20,7 +29,6 @@ def _encoding(path, **kw):
                           "finest_resolution": 96, **kw})
     with torch.no_grad():
         enc.table.uniform_(-1, 1)
-    enc.use_kernels = path == "kernels"
     return enc
 
 

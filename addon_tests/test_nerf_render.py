@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from blender_nerf_deform.engine.checkpoint import load_nerf, save_nerf
+from blender_nerf_deform.engine.nerf.checkpoint import load_nerf, save_nerf
 from blender_nerf_deform.engine.errors import EngineError
-from blender_nerf_deform.engine.model import NerfConfig, NerfModel
-from blender_nerf_deform.engine.occupancy import OccupancyGrid
-from blender_nerf_deform.engine.renderer import Camera, camera_rays, render_image, render_rays
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
+from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
 
 from nerf_fixtures import look_at
 

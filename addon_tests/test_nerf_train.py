@@ -10,11 +10,11 @@ import pytest
 import torch
 from PIL import Image
 
-from blender_nerf_deform.engine.checkpoint import load_nerf
-from blender_nerf_deform.engine.dataset import load_dataset
-from blender_nerf_deform.engine.evaluate import evaluate, psnr
-from blender_nerf_deform.engine.model import NerfConfig, NerfModel
-from blender_nerf_deform.engine.trainer import Trainer, TrainOptions
+from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
+from blender_nerf_deform.engine.nerf.dataset import load_dataset
+from blender_nerf_deform.engine.nerf.evaluate import evaluate, psnr
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
 
 from conftest import REPO
 from nerf_fixtures import write_sphere_dataset
@@ -63,18 +63,18 @@ def test_training_beats_the_constant_colour_baseline(tmp_path):
 def test_the_torch_path_that_cuda_runs_trains_like_the_kernels(sphere, monkeypatch):
     """Encoding, marching and Adam without the numba kernels (the code CUDA runs), on CPU: same samples,
     and the same training gets about the same quality."""
-    from blender_nerf_deform.engine import cpu_kernels, renderer
+    from blender_nerf_deform.engine import backend
+    from blender_nerf_deform.engine.nerf import renderer
 
-    if not cpu_kernels.HAVE_NUMBA:
+    if not backend.HAVE_NUMBA:
         pytest.skip("numba is not installed: every test already runs the torch path")
     train = load_dataset(sphere[0])
     views = train.subset(range(3))
     results = {}
     for kernels in (True, False):
-        monkeypatch.setattr(renderer, "USE_CPU_KERNELS", kernels)
+        monkeypatch.setattr(backend, "_path", "auto" if kernels else "torch")
         torch.manual_seed(0)
         model = NerfModel(NerfConfig(aabb=train.aabb.reshape(-1).tolist(), **SMALL))
-        model.encoding.use_kernels = kernels
         model.occupancy.update(model.density, model.config.render_step, model.config.occ_threshold)
         o, d = renderer.camera_rays(train.cameras[0])
         results[kernels, "march"] = renderer.march(o, d, model.occupancy, model.config.render_step)
@@ -151,7 +151,7 @@ def test_cli_device_cuda_without_cuda(sphere, tmp_path):
 def test_an_occupancy_update_keeps_the_largest_of_a_cells_repeated_samples():
     """Random cells repeat within one update, each at its own jittered point: the cell keeps the max
     (as an EMA-max should), whatever order the writes land in."""
-    from blender_nerf_deform.engine.occupancy import OccupancyGrid
+    from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
 
     grid = OccupancyGrid(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), resolution=4)
     grid.density = torch.linspace(0.0, 6.3, 64)

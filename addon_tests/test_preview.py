@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from blender_nerf_deform.engine.cage import box_cage
-from blender_nerf_deform.engine.embedding import embed_points
+from blender_nerf_deform.engine.geometry.cage import box_cage
+from blender_nerf_deform.engine.geometry.embedding import embed_points
 
 
 def _nerf_with_cage_and_surface(bpy):

@@ -160,7 +160,7 @@ def test_moving_the_cage_in_cage_modifiers_mode_renders_like_moving_the_camera_b
     from mathutils import Matrix, Vector
 
     from blender_nerf_deform.addon.cage_store import store_cage
-    from blender_nerf_deform.engine.cage import box_cage
+    from blender_nerf_deform.engine.geometry.cage import box_cage
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())

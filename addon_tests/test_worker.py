@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from blender_nerf_deform.engine.protocol import ProtocolError, read_message, write_message
+from blender_nerf_deform.engine.service.protocol import ProtocolError, read_message, write_message
 
 from conftest import REPO
 

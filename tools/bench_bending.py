@@ -32,11 +32,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from blender_nerf_deform.engine.bending import CageBend  # noqa: E402
-from blender_nerf_deform.engine.checkpoint import load_nerf  # noqa: E402
-from blender_nerf_deform.engine.dataset import load_dataset  # noqa: E402
-from blender_nerf_deform.engine.mesh_io import load_cage  # noqa: E402
-from blender_nerf_deform.engine.renderer import render_image  # noqa: E402
+from blender_nerf_deform.engine.bend.cage_bend import CageBend  # noqa: E402
+from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
+from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
+from blender_nerf_deform.engine.geometry.mesh_io import load_cage  # noqa: E402
+from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
 
 
 def twist_upper_part(vertices: np.ndarray, degrees: float, start: float) -> np.ndarray:
@@ -124,7 +124,7 @@ def main() -> int:
         psnr_gt.append(psnr(plain["rgb"], gt))
         psnr_identity.append(psnr(identity[k], plain["rgba"]))
         if args.save:
-            from blender_nerf_deform.engine.render_cli import write_png_rgba
+            from blender_nerf_deform.engine.cli.render import write_png_rgba
 
             folder = Path(args.save)
             folder.mkdir(parents=True, exist_ok=True)

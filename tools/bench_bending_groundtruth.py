@@ -312,7 +312,7 @@ def _on_white(rgba: np.ndarray) -> np.ndarray:
 
 def score(render_dir: Path, gt_transforms: Path) -> dict:
     """Mean PSNR (RGB on white) and alpha PSNR of DIR/<name>.png against the frames of a transforms.json."""
-    from blender_nerf_deform.engine.evaluate import psnr  # noqa: PLC0415
+    from blender_nerf_deform.engine.nerf.evaluate import psnr  # noqa: PLC0415
 
     meta = json.loads(gt_transforms.read_text())
     rgb, alpha = [], []
@@ -328,7 +328,7 @@ def score(render_dir: Path, gt_transforms: Path) -> dict:
 
 def cage_map_error(surface: np.ndarray, rest_vertices, tets, fn, px_per_unit: float) -> dict:
     """How far the cage's piecewise-affine version of `fn` puts the true surface from where `fn` puts it."""
-    from blender_nerf_deform.engine.embedding import embed_points  # noqa: PLC0415
+    from blender_nerf_deform.engine.geometry.embedding import embed_points  # noqa: PLC0415
 
     emb = embed_points(surface, rest_vertices, tets)
     err = np.linalg.norm(emb.apply(fn(rest_vertices)) - fn(surface), axis=1)
@@ -421,8 +421,8 @@ def main(argv=None) -> int:
     if reused:
         print(f"reused from {work}: {', '.join(reused)}", flush=True)
 
-    from blender_nerf_deform.engine.barycentric import inversion_report  # noqa: PLC0415
-    from blender_nerf_deform.engine.mesh_io import load_cage  # noqa: PLC0415
+    from blender_nerf_deform.engine.geometry.barycentric import inversion_report  # noqa: PLC0415
+    from blender_nerf_deform.engine.geometry.mesh_io import load_cage  # noqa: PLC0415
 
     cage = load_cage(cage_path)
     rest_v, tets = cage["vertices"], cage["tets"]

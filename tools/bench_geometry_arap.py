@@ -36,10 +36,10 @@ def main() -> int:
     ap.add_argument("--runs", default="numba:elements,igl:elements", help="backend:energy pairs (igl also runs spokes, spokes_and_rims)")
     args = ap.parse_args()
 
-    from blender_nerf_deform.engine.barycentric import inversion_report
-    from blender_nerf_deform.engine.cage import box_cage
-    from blender_nerf_deform.engine.deform import ArapDeformer, edge_length_distortion
-    from blender_nerf_deform.engine.mesh_io import load_cage
+    from blender_nerf_deform.engine.geometry.barycentric import inversion_report
+    from blender_nerf_deform.engine.geometry.cage import box_cage
+    from blender_nerf_deform.engine.geometry.deform import ArapDeformer, edge_length_distortion
+    from blender_nerf_deform.engine.geometry.mesh_io import load_cage
 
     if args.cage:
         c = load_cage(args.cage)

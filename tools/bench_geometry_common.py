@@ -53,7 +53,7 @@ def machine() -> str:
 
 
 def extracted_mesh(resolution: int = 128):
-    from blender_nerf_deform.engine.extract import extract_mesh
+    from blender_nerf_deform.engine.geometry.extract import extract_mesh
 
     return extract_mesh(analytic_density, BOUNDS, resolution=resolution)
 

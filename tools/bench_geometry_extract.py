@@ -28,13 +28,13 @@ def main() -> int:
     ap.add_argument("--out-mesh", help="also write the filtered mesh (PLY)")
     args = ap.parse_args()
 
-    from blender_nerf_deform.engine.cage import build_cage
-    from blender_nerf_deform.engine.extract import DEFAULT_THRESHOLD, colour_fn_of, density_fn_of, extract_mesh
-    from blender_nerf_deform.engine.mesh_io import write_ply
+    from blender_nerf_deform.engine.geometry.cage import build_cage
+    from blender_nerf_deform.engine.geometry.extract import DEFAULT_THRESHOLD, colour_fn_of, density_fn_of, extract_mesh
+    from blender_nerf_deform.engine.geometry.mesh_io import write_ply
 
     colour = None
     if args.nerf:
-        from blender_nerf_deform.engine.checkpoint import load_nerf
+        from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
 
         nerf = load_nerf(args.nerf, device="cpu")
         density = density_fn_of(nerf)

@@ -36,10 +36,10 @@ def main() -> int:
     import igl
     import torch
 
-    from blender_nerf_deform.engine.barycentric import barycentric, inversion_report, tet_inverses
-    from blender_nerf_deform.engine.cage import build_cage
-    from blender_nerf_deform.engine.mesh_io import load_cage, save_cage
-    from blender_nerf_deform.engine.point_location import TetLocator
+    from blender_nerf_deform.engine.geometry.barycentric import barycentric, inversion_report, tet_inverses
+    from blender_nerf_deform.engine.geometry.cage import build_cage
+    from blender_nerf_deform.engine.geometry.mesh_io import load_cage, save_cage
+    from blender_nerf_deform.engine.geometry.locate import TetLocator
 
     if args.cage:
         c = load_cage(args.cage)

@@ -2,7 +2,7 @@
 """Benchmark: field throughput on CPU (samples/s), forward and training step, against the obvious way.
 
 "Obvious way" = a per-level, per-corner torch implementation (one gather per level
-and corner, weights built per corner; `hashgrid.reference_hash_encode`) with
+and corner, weights built per corner; `encoding.reference_hash_encode`) with
 separate per-level tables, L=16 x F=2, T=2^19, the same MLPs, torch Adam.
 
 Variants, measured in the same run on the same samples (points along random rays,
@@ -32,9 +32,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from blender_nerf_deform.engine.cpu_kernels import HAVE_NUMBA, _sparse_adam  # noqa: E402
-from blender_nerf_deform.engine.hashgrid import reference_hash_encode  # noqa: E402
-from blender_nerf_deform.engine.model import NerfConfig, NerfModel  # noqa: E402
+from blender_nerf_deform.engine import backend  # noqa: E402
+from blender_nerf_deform.engine.nerf.adam_kernels import sparse_adam  # noqa: E402
+from blender_nerf_deform.engine.nerf.encoding import reference_hash_encode  # noqa: E402
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel  # noqa: E402
 
 
 def samples(n: int, seed: int = 0):
@@ -57,7 +58,7 @@ class Variant:
         self.model = NerfModel(NerfConfig(n_levels=levels, n_features=feats, log2_table_size=log2t,
                                           finest_resolution=2048 if levels == 16 else 512))
         enc = self.model.encoding
-        enc.use_kernels = mode in ("kernels", "lazyadam", "ours")
+        self.path = "auto" if mode in ("kernels", "lazyadam", "ours") else "torch"  # backend.forced per call
         enc.fused_grad = mode in ("lazyadam", "ours")
         mlp = list(self.model.density_net.parameters()) + list(self.model.color_net.parameters())
         if mode == "naive":
@@ -84,10 +85,14 @@ class Variant:
         return m.query(pts, dirs)
 
     def forward(self, pts, dirs):
-        with torch.no_grad():
+        with torch.no_grad(), backend.forced(self.path):
             return self.query(pts, dirs)
 
     def train_step(self, pts, dirs, target):
+        with backend.forced(self.path):
+            self._train_step(pts, dirs, target)
+
+    def _train_step(self, pts, dirs, target):
         sigma, rgb = self.query(pts, dirs)
         loss = ((rgb - target) ** 2).mean() + 1e-3 * sigma.mean()
         self.opt.zero_grad(set_to_none=True)
@@ -96,7 +101,7 @@ class Variant:
         self.t += 1
         enc = self.model.encoding
         if enc.fused_grad:
-            _sparse_adam(enc.table.detach().numpy(), enc.grad_buffer().numpy(), self.m.numpy(), self.v.numpy(),
+            sparse_adam(enc.table.detach().numpy(), enc.grad_buffer().numpy(), self.m.numpy(), self.v.numpy(),
                          enc.touched_rows(), 1e-2, 0.9, 0.99, 1e-15, 1 - 0.9**self.t, 1 - 0.99**self.t)
 
 
@@ -119,7 +124,7 @@ def main() -> int:
     pts, dirs = samples(args.n)
     target = torch.rand(args.n, 3)
     ladder = [("naive", 16, 2, 19, "naive"), ("onegather", 16, 2, 19, "onegather")]
-    if HAVE_NUMBA:
+    if backend.HAVE_NUMBA:
         ladder += [("kernels", 16, 2, 19, "kernels"), ("+lazyadam", 16, 2, 19, "lazyadam"), ("ours", 8, 4, 17, "ours")]
     ladder.append(("ours-torch", 8, 4, 17, "onegather"))
     rows = []

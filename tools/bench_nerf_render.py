@@ -23,9 +23,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from blender_nerf_deform.engine.checkpoint import load_nerf  # noqa: E402
-from blender_nerf_deform.engine.dataset import load_dataset  # noqa: E402
-from blender_nerf_deform.engine.renderer import render_image  # noqa: E402
+from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
+from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
+from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
 
 
 def main() -> int:

@@ -24,10 +24,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from blender_nerf_deform.engine.dataset import load_dataset  # noqa: E402
-from blender_nerf_deform.engine.model import NerfConfig, NerfModel  # noqa: E402
-from blender_nerf_deform.engine.renderer import render_image  # noqa: E402
-from blender_nerf_deform.engine.trainer import Trainer, TrainOptions  # noqa: E402
+from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel  # noqa: E402
+from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
+from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions  # noqa: E402
 
 
 def peak_rss_mb() -> float:
@@ -115,7 +115,7 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))
     if args.save:
-        from blender_nerf_deform.engine.checkpoint import save_nerf
+        from blender_nerf_deform.engine.nerf.checkpoint import save_nerf
 
         save_nerf(model, args.save)
     return 0

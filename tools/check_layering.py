@@ -3,8 +3,15 @@
 
 - `engine/` never imports Blender's modules (bpy and friends).
 - `addon/` never imports torch, neither directly nor through an engine module
-  it imports; and the engine modules it imports reach nothing but the standard
-  library and numpy (all that Blender's own Python has besides bpy).
+  it imports (or the packages above it, which Python runs first); and the
+  engine modules it imports reach nothing but the standard library and numpy
+  (all that Blender's own Python has besides bpy).
+- No import cycle among the engine's modules.
+- The plumbing holds no stage logic (DESIGN.md, "Layout"): `engine/cli/` and
+  `engine/service/` import no numerical library but numpy (no torch, numba,
+  scipy, scikit-image, trimesh, libigl, pytetwild, PIL): the numbers are
+  computed by the stage packages they call. And the stages never import the
+  plumbing (`cli/`, `service/`): the dependency runs one way.
 
 Every `import` statement counts, including those inside functions, so a lazy
 import cannot slip past. Exits 1 and lists the violations when any is found.
@@ -20,6 +27,9 @@ BLENDER_MODULES = {"bpy", "bpy_extras", "bmesh", "mathutils", "gpu", "gpu_extras
 TORCH_MODULES = {"torch", "torchvision", "torchaudio", "functorch", "tinycudann"}
 # What engine modules used by the add-on may import: Blender's Python has numpy and the stdlib.
 ADDON_SAFE = set(sys.stdlib_module_names) | {"numpy"}
+# Libraries that do a stage's work: the command line and the worker call stages instead.
+STAGE_LIBRARIES = TORCH_MODULES | {"numba", "llvmlite", "scipy", "skimage", "trimesh", "igl", "pytetwild", "PIL"}
+PLUMBING = ("cli", "service")
 
 
 def _module_name(package_root: Path, path: Path) -> str:
@@ -63,6 +73,45 @@ def _top(name: str) -> str:
     return name.split(".")[0]
 
 
+def _with_parents(name: str, pkg: str) -> list[str]:
+    """`pkg.a.b` and the packages Python imports first to get it: pkg.a, pkg (their __init__)."""
+    parts = name.split(".")
+    return [".".join(parts[:k]) for k in range(len(parts), 1, -1)] if name.startswith(pkg + ".") else [name]
+
+
+def import_cycle(graph: dict, prefix: str) -> list[str] | None:
+    """One cycle among the modules under `prefix` (each import also runs its parent packages), or None."""
+    edges = {}
+    for module, (_path, imports) in graph.items():
+        if not module.startswith(prefix):
+            continue
+        targets = set()
+        for _line, name in imports:
+            for target in _with_parents(name, prefix.split(".")[0]):
+                # A package's own __init__ running its parents is not a cycle back to itself.
+                if target in graph and target.startswith(prefix) and target != module and not module.startswith(target + "."):
+                    targets.add(target)
+        edges[module] = sorted(targets)
+    state, stack = {}, []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for n in edges.get(m, ()):
+            if state.get(n) == 1:
+                return stack[stack.index(n):] + [n]
+            if n not in state and (found := visit(n)):
+                return found
+        stack.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(edges):
+        if m not in state and (found := visit(m)):
+            return found
+    return None
+
+
 def violations(package_root: Path) -> list[str]:
     pkg = package_root.name
     graph = import_graph(package_root)
@@ -74,19 +123,36 @@ def violations(package_root: Path) -> list[str]:
                 if _top(name) in BLENDER_MODULES:
                     problems.append(f"{path}:{line}: engine imports {name} (engine/ must not import Blender modules)")
 
+    engine = f"{pkg}.engine"
+    cycle = import_cycle(graph, engine)
+    if cycle:
+        problems.append(f"{graph[cycle[0]][0]}: import cycle in engine/: {' -> '.join(cycle)}")
+    reported = set()
+    for module, (path, imports) in graph.items():
+        part = module[len(engine) + 1:].split(".")[0] if module.startswith(engine + ".") else ""
+        for line, name in imports:
+            if part in PLUMBING and _top(name) in STAGE_LIBRARIES:
+                problems.append(f"{path}:{line}: engine/{part}/ imports {name}: the command line and the worker "
+                                "hold no stage logic (call a stage function of nerf/, geometry/ or bend/)")
+            target = name[len(engine) + 1:].split(".")[0] if name.startswith(engine + ".") else ""
+            if part and part not in PLUMBING + ("__main__",) and target in PLUMBING and (path, line) not in reported:
+                reported.add((path, line))
+                problems.append(f"{path}:{line}: stage module {module} imports {name} (stages never import engine/cli or engine/service)")
+
     # A module Blender's Python lacks, reachable from addon/ through any chain of engine modules.
     def reaches_unsafe(module: str, seen: set[str]) -> list[str] | None:
         if module in seen or module not in graph:
             return None
         seen.add(module)
-        for _line, name in graph[module][1]:
-            if name.startswith(pkg + ".") or name == pkg:
-                if not name.startswith(f"{pkg}.addon"):
-                    chain = reaches_unsafe(name, seen)
-                    if chain:
-                        return [module] + chain
-            elif _top(name) not in ADDON_SAFE:
-                return [module, name]
+        for _line, imported in graph[module][1]:
+            for name in _with_parents(imported, pkg):
+                if name.startswith(pkg + ".") or name == pkg:
+                    if not name.startswith(f"{pkg}.addon"):
+                        chain = reaches_unsafe(name, seen)
+                        if chain:
+                            return [module] + chain
+                elif _top(name) not in ADDON_SAFE:
+                    return [module, name]
         return None
 
     for module, (path, imports) in graph.items():
@@ -98,8 +164,9 @@ def violations(package_root: Path) -> list[str]:
             elif not (name == pkg or name.startswith(pkg + ".")) and _top(name) not in ADDON_SAFE | BLENDER_MODULES:
                 problems.append(f"{path}:{line}: addon imports {name}, which Blender's Python does not have")
             elif name.startswith(f"{pkg}.engine"):
-                chain = reaches_unsafe(name, set())
-                if chain:
+                chain = next((c for n in _with_parents(name, pkg) if (c := reaches_unsafe(n, set()))), None)
+                if chain and (path, line) not in reported:
+                    reported.add((path, line))
                     problems.append(
                         f"{path}:{line}: addon imports {name}, which reaches {chain[-1]} "
                         f"(not in Blender's Python): {' -> '.join(chain)}"

@@ -7,6 +7,7 @@ import numpy as np
 
 from .cage_store import store_cage, store_embedding
 from .jobs import WorkerOperator
+from .nerf_ops import checkpoint_path
 from .preview import PREVIEW_KEY
 from .properties import owning_nerf
 
@@ -44,7 +45,9 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
         if len(arrays["faces"]) == 0:
             raise ValueError(f"{surface.name} has no faces to build a cage around")
         self._nerf = nerf
-        return "cage", {}, arrays
+        # With the checkpoint and the extraction threshold the worker widens the margin where the
+        # NeRF's density is still soft, as the `cage` command does (one stage function for both).
+        return "cage", {"checkpoint": checkpoint_path(nerf), "threshold": nerf.nerf_deform.threshold}, arrays
 
     def apply(self, context, result, arrays):
         nerf = self._nerf

@@ -14,7 +14,15 @@ process or on a farm, so its exact data lives in the file:
 ID property arrays are stored compactly and read back through the buffer
 protocol, so a 100k-tet cage costs milliseconds to store and load. Reads copy:
 a numpy view of an ID property outlives it (undo, Build Cage again, quitting)
-and would then read freed memory.
+and would then read freed memory. Writes delete the old property first: in
+bpy 5.0.1 assigning an array of another length over an existing ID-property
+array corrupts the heap (and fTetWild's vertex count differs on every build).
+
+Each stored cage and embedding also carries its content key (the worker
+session's name for it, `protocol.content_key` of the arrays as sent), so a
+frame or a preview update tells the worker which cage it means without reading,
+hashing or sending the arrays again. Data saved before keys existed gets its
+key computed once per Blender session.
 """
 
 from __future__ import annotations
@@ -22,13 +30,23 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from ..engine.barycentric import boundary_faces
+from ..engine.geometry.barycentric import boundary_faces
+from ..engine.service.protocol import content_key
 
 REST_KEY = "nerf_deform_rest_vertices"
 TETS_KEY = "nerf_deform_tets"
 EMBED_TET_KEY = "nerf_deform_embed_tet"
 EMBED_WEIGHTS_KEY = "nerf_deform_embed_weights"
 EMBED_COUNT_KEY = "nerf_deform_embed_vertex_count"
+CAGE_CONTENT_KEY = "nerf_deform_cage_key"
+EMBED_CONTENT_KEY = "nerf_deform_embed_key"
+_computed_keys: dict[tuple, str] = {}  # keys of data stored without one, by (datablock, property)
+
+
+def _set_property(idblock, name: str, value) -> None:
+    if name in idblock:
+        del idblock[name]  # never assign over an array of another length (module docstring)
+    idblock[name] = value
 
 
 class CageDataError(ValueError):
@@ -56,8 +74,9 @@ def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray
     if tets.size and (tets.min() < 0 or tets.max() >= len(vertices)):
         raise CageDataError(f"cage tets index vertices outside 0..{len(vertices) - 1}")
     set_triangles(cage_mesh, vertices, boundary_faces(tets, vertices))
-    cage_mesh[REST_KEY] = vertices.ravel()
-    cage_mesh[TETS_KEY] = tets.astype(np.int32).ravel()
+    _set_property(cage_mesh, REST_KEY, vertices.ravel())
+    _set_property(cage_mesh, TETS_KEY, tets.astype(np.int32).ravel())
+    _set_property(cage_mesh, CAGE_CONTENT_KEY, content_key(vertices, tets.astype(np.int64)))
 
 
 def has_cage(cage_mesh: bpy.types.Mesh | None) -> bool:
@@ -113,9 +132,10 @@ def store_embedding(mesh: bpy.types.Mesh, tet_ids: np.ndarray, weights: np.ndarr
             f"embedding of '{mesh.name}' needs one tet and 4 weights per vertex ({len(mesh.vertices)}), "
             f"got {tet_ids.shape} and {weights.shape}"
         )
-    mesh[EMBED_TET_KEY] = tet_ids.astype(np.int32)
-    mesh[EMBED_WEIGHTS_KEY] = weights.ravel()
-    mesh[EMBED_COUNT_KEY] = len(mesh.vertices)
+    _set_property(mesh, EMBED_TET_KEY, tet_ids.astype(np.int32))
+    _set_property(mesh, EMBED_WEIGHTS_KEY, weights.ravel())
+    _set_property(mesh, EMBED_COUNT_KEY, len(mesh.vertices))
+    _set_property(mesh, EMBED_CONTENT_KEY, content_key(tet_ids.astype(np.int64), weights))
 
 
 def load_embedding(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -130,3 +150,31 @@ def load_embedding(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
     tet_ids = np.array(mesh[EMBED_TET_KEY], dtype=np.int64)  # copies (module docstring)
     weights = np.array(mesh[EMBED_WEIGHTS_KEY], dtype=np.float64).reshape(-1, 4)
     return tet_ids, weights
+
+
+def _stored_key(idblock, name: str, load) -> str:
+    key = idblock.get(name)
+    if isinstance(key, str) and key:
+        return key
+    # Saved before content keys: hash once per session (the data cannot change without Build
+    # Cage, which stores a key).
+    cache_key = (idblock.session_uid, name, len(idblock.vertices))
+    if cache_key not in _computed_keys:
+        _computed_keys[cache_key] = content_key(*load(idblock))
+    return _computed_keys[cache_key]
+
+
+def shared_cage(cage_mesh: bpy.types.Mesh) -> tuple[str, callable]:
+    """The rest cage as worker-session content: (key, loader of its arrays); loaded only when sent."""
+    key = _stored_key(cage_mesh, CAGE_CONTENT_KEY, load_cage)
+    if len(cage_mesh.vertices) * 3 != len(cage_mesh[REST_KEY]):
+        load_cage(cage_mesh)  # raises the error that says what changed
+    return key, lambda: dict(zip(("vertices", "tets"), load_cage(cage_mesh)))
+
+
+def shared_embedding(mesh: bpy.types.Mesh) -> tuple[str, callable]:
+    """The surface's embedding as worker-session content: (key, loader of its arrays)."""
+    if EMBED_TET_KEY not in mesh or mesh.get(EMBED_COUNT_KEY) != len(mesh.vertices):
+        load_embedding(mesh)  # raises the error that says what is wrong
+    key = _stored_key(mesh, EMBED_CONTENT_KEY, load_embedding)
+    return key, lambda: dict(zip(("tet_ids", "weights"), load_embedding(mesh)))

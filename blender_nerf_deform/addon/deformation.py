@@ -1,4 +1,4 @@
-"""Handle poses → the worker's solve request → deformed cage, for renders and for the live preview.
+"""Poses of a NeRF's cage as worker requests: for a frame's render, and for the live preview.
 
 Determinism (a render farm, F12 and the viewport agree): the request is built
 from the depsgraph-evaluated handles and NeRF at the frame being shown or
@@ -10,7 +10,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from .cage_store import load_cage, load_embedding
+from ..engine.service.protocol import content_key
+from .cage_store import deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
 from .handles import group_vertices, handle_target
 from .properties import PIN_GROUP, handles_of
 
@@ -29,35 +30,74 @@ def region_vertices(surface: bpy.types.Object, group: str) -> np.ndarray:
     return _region_cache[key]
 
 
-def solve_request(nerf, depsgraph) -> tuple[dict, dict] | None:
-    """The worker request for `nerf`'s handles at this frame, or None when it has no handle."""
+def handle_pose(nerf, depsgraph) -> tuple[dict, dict] | None:
+    """`nerf`'s handles at this frame as (pose params, shared content), or None without a handle.
+
+    The pose params (mode, one 4x4 transform per handle in the NeRF's frame, their names) are
+    all that changes from frame to frame; the cage, the surface's embedding and the handles'
+    regions travel as shared content, by key (sent to a worker once).
+    """
     s = nerf.nerf_deform
     handles = handles_of(nerf)
     if not handles:
         return None
     surface = s.surface
-    rest, tets = load_cage(s.cage.data)
-    tet_ids, weights = load_embedding(surface.data)
     regions = [region_vertices(surface, h.nerf_deform.region) for h in handles]
-    params = {
-        "mode": s.deformation_mode,
-        "transforms": [handle_target(h, nerf, depsgraph).tolist() for h in handles],
-        "handle_names": [h.name for h in handles],
-    }
-    arrays = {
-        "rest_vertices": rest,
-        "tets": tets,
-        "tet_ids": tet_ids,
-        "weights": weights,
+    region_arrays = {
         "handle_index": np.concatenate(regions) if regions else np.zeros(0, np.int64),
         "handle_counts": np.array([len(r) for r in regions], dtype=np.int64),
         "pin_index": region_vertices(surface, PIN_GROUP),
     }
-    return params, arrays
+    pose = {
+        "mode": s.deformation_mode,
+        "transforms": [handle_target(h, nerf, depsgraph).tolist() for h in handles],
+        "handle_names": [h.name for h in handles],
+    }
+    shared = {
+        "cage": shared_cage(s.cage.data),
+        "embedding": shared_embedding(surface.data),
+        "regions": (content_key(*region_arrays.values()), lambda: region_arrays),
+    }
+    return pose, shared
+
+
+def frame_pose(nerf, depsgraph) -> tuple[dict, dict, dict]:
+    """What a frame renders `nerf` at: (pose params, arrays, shared content) for the worker's render.
+
+    Handles: solved in the worker with the frame (ARAP or affine). Cage Modifiers: the cage's
+    vertices as its modifiers deform them. No cage, or no handle: the rest pose.
+    """
+    s = nerf.nerf_deform
+    if s.cage is None or not has_cage(s.cage.data):
+        return {"kind": "rest"}, {}, {}
+    if s.deformation_mode == "MODIFIERS":
+        deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph)
+        return {"kind": "cage"}, {"deformed_vertices": deformed}, {"cage": shared_cage(s.cage.data)}
+    request = handle_pose(nerf, depsgraph)
+    if request is None:
+        return {"kind": "rest"}, {}, {}
+    pose, shared = request
+    return {"kind": "handles", **pose}, {}, shared
+
+
+def deformed_cage(nerf, depsgraph, client) -> np.ndarray | None:
+    """The cage's vertices (NeRF frame) as the frame being shown deforms them, solved as a render
+    solves them (scripts, tests); None when the NeRF has no cage."""
+    s = nerf.nerf_deform
+    if s.cage is None or not has_cage(s.cage.data):
+        return None
+    pose, arrays, shared = frame_pose(nerf, depsgraph)
+    if pose["kind"] == "cage":
+        return arrays["deformed_vertices"]
+    if pose["kind"] == "rest":
+        return load_cage(s.cage.data)[0]
+    _result, out = client.call("solve", pose, shared=shared)
+    return out["deformed_vertices"]
 
 
 class AsyncSolver:
-    """Preview solves for one NeRF: one request in flight, the newest pose waiting behind it."""
+    """Preview solves for one NeRF: one request in flight, the newest pose waiting behind it.
+    Each asks the worker for the deformed surface itself (answer "surface"), the preview's shape key."""
 
     def __init__(self, client, on_result):
         self.client = client
@@ -66,12 +106,12 @@ class AsyncSolver:
         self.waiting: tuple[dict, dict] | None = None
         self.last_error = ""
 
-    def request(self, params: dict, arrays: dict) -> None:
+    def request(self, pose: dict, shared: dict) -> None:
         if self.in_flight:
-            self.waiting = (params, arrays)  # only the newest pose matters
+            self.waiting = (pose, shared)  # only the newest pose matters
             return
         self.in_flight = True
-        self.client.submit("solve", params, arrays, on_done=self._done, on_error=self._failed)
+        self.client.submit("solve", {**pose, "answer": "surface"}, shared=shared, on_done=self._done, on_error=self._failed)
 
     def _next(self) -> None:
         self.in_flight = False
@@ -81,7 +121,7 @@ class AsyncSolver:
 
     def _done(self, result: dict, arrays: dict) -> None:
         self.last_error = ""
-        self.on_result(result, arrays["deformed_vertices"])
+        self.on_result(result, arrays["surface"])
         self._next()
 
     def _failed(self, error) -> None:

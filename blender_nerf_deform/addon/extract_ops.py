@@ -9,7 +9,7 @@ from .cage_store import set_triangles
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .properties import handles_of, owning_nerf
-from .render_engine import srgb_to_linear
+from .frame_render import srgb_to_linear
 
 COLOR_ATTRIBUTE = "NeRF Color"
 

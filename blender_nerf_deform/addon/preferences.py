@@ -14,7 +14,7 @@ class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
     worker_python: StringProperty(
         name="Worker Python",
         description="Python interpreter with torch installed that runs the NeRF engine "
-        "(training, extraction, cage building and rendering) in a separate process",
+        "(extraction, cage building, ARAP solves and rendering) in a separate process",
         subtype="FILE_PATH",
         default="",
     )

@@ -9,8 +9,10 @@ new handles are made on it) while the viewport shows the deformed shape.
 Cage Modifiers mode needs no worker: the cage object's evaluated vertices
 (after its Armature, Lattice, ... modifiers) are the deformed cage. ARAP and
 affine-region modes ask the worker to solve for the handles' poses, without
-waiting: the answer updates the mesh when it arrives, and while a solve runs
-only the newest pose waits behind it. The handler runs after every depsgraph
+waiting: a request carries only the handle transforms (the cage, embedding and
+regions are in the worker's session), the answer is the deformed surface
+itself and updates the mesh when it arrives, and while a solve runs only the
+newest pose waits behind it. The handler runs after every depsgraph
 update and frame change, is guarded against re-entrancy (writing the shape key
 triggers another update), and skips NeRFs whose pose did not change.
 
@@ -25,10 +27,10 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from ..engine.embedding import Embedding
+from ..engine.geometry.embedding import Embedding
 from . import jobs
 from .cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
-from .deformation import AsyncSolver, solve_request
+from .deformation import AsyncSolver, handle_pose
 from .properties import settings
 from .worker_client import WorkerError
 
@@ -67,27 +69,28 @@ def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
 
 
 def _solve_in_background(nerf: bpy.types.Object, depsgraph) -> None:
-    """Send the handles' pose to the worker when it changed; the answer updates the preview."""
-    request = solve_request(nerf, depsgraph)
+    """Send the handles' pose to the worker when it changed; the deformed surface it answers is the preview."""
+    request = handle_pose(nerf, depsgraph)
     if request is None:
         return
-    params, arrays = request
-    pose = repr((params["mode"], params["transforms"], arrays["handle_counts"].tolist(), len(arrays["pin_index"]))).encode()
-    if _last_pose.get(nerf.name) == pose:
+    pose, shared = request
+    state = repr((pose, sorted((slot, key) for slot, (key, _load) in shared.items()))).encode()
+    if _last_pose.get(nerf.name) == state:
         return
-    _last_pose[nerf.name] = pose
+    _last_pose[nerf.name] = state
     name = nerf.name
     solver = _solvers.get(name)
     if solver is None:
 
-        def show(result, deformed, name=name):
+        def show(result, surface_positions, name=name):
             target = bpy.data.objects.get(name)
             if target is not None and _previewable(target):
-                _rest, tets = load_cage(settings(target).cage.data)
-                show_deformed(settings(target).surface, surface_embedding(settings(target).surface, tets).apply(deformed))
+                surface = settings(target).surface
+                if len(surface_positions) == len(surface.data.vertices):
+                    show_deformed(surface, surface_positions)
 
         solver = _solvers[name] = AsyncSolver(jobs.worker(bpy.context), show)
-    solver.request(params, arrays)
+    solver.request(pose, shared)
 
 
 def _previewable(nerf: bpy.types.Object) -> bool:

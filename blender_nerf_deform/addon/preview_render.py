@@ -15,7 +15,7 @@ import numpy as np
 
 from . import jobs
 from .camera import CameraError
-from .render_engine import frame_request, nerfs_to_render, srgb_to_linear
+from .frame_render import frame_request, nerfs_to_render, srgb_to_linear
 from .worker_client import WorkerError
 
 IMAGE_NAME = "NeRF Preview"
@@ -58,7 +58,7 @@ class PreviewJob:
         if not nerfs:
             raise ValueError("no NeRF object in the scene to preview: use Load NeRF first")
         depsgraph = context.evaluated_depsgraph_get()
-        self.requests = [frame_request(depsgraph, nerfs[0], k)[:2] for k in DOWNSCALES]
+        self.requests = [frame_request(depsgraph, nerfs[0], k) for k in DOWNSCALES]
         self.client = jobs.worker(context)
         self.delivered: list[tuple[int, int]] = []  # sizes shown so far
         self.state = "running"  # running, finished, cancelled, failed
@@ -69,9 +69,9 @@ class PreviewJob:
         self._send(0)
 
     def _send(self, step: int) -> None:
-        params, arrays = self.requests[step]
+        request = self.requests[step]
         self._request_id = self.client.submit(
-            "render", params, arrays,
+            "render", request.params, request.arrays, shared=request.shared,
             on_done=lambda result, out: self._arrived(step, out),
             on_error=self._failed,
         )

@@ -1,7 +1,7 @@
 """Client of the engine worker process (DESIGN.md: "a worker process between them").
 
 Blender never imports torch: heavy work runs in `python -m
-<package>.engine.worker` on the Python set in the add-on preferences. A reader
+<package>.engine.service.worker` on the Python set in the add-on preferences. A reader
 thread turns the worker's stdout into messages on a queue; on Blender's main
 thread a `bpy.app.timers` function drains it and calls the request's callbacks
 (the documented way to bring results from another thread). Blocking callers
@@ -11,6 +11,13 @@ use `call()`, which waits for its own answer and leaves the others queued.
 A worker that crashes or lacks torch fails the pending requests with a clear
 message; the next request starts a fresh one. Blender's scene is never touched
 from here: callbacks decide what to do with results.
+
+The worker session (DESIGN.md): a request may name shared content, `shared =
+{slot: (content key, loader)}`. The client remembers what it gave the running
+worker and calls a slot's loader (and sends its arrays) only for a key that
+worker has not been given; a worker that answers "missing" (it dropped the
+content) gets it again with the same request. Every message's size is counted
+(`bytes_sent`, `sent`: (op, bytes) of the recent requests).
 """
 
 from __future__ import annotations
@@ -30,13 +37,13 @@ from typing import Callable
 
 import numpy as np
 
-from ..engine.protocol import ProtocolError, read_message, write_message
+from ..engine.service.protocol import ProtocolError, read_message, write_message
 
 # The extension's package folder and its name (`blender_nerf_deform`, whatever
 # `bl_ext.<repo>.` prefix Blender gives the module); the worker imports the
 # engine from the folder's parent.
 PACKAGE_DIR = Path(__file__).resolve().parent.parent
-WORKER_MODULE = f"{PACKAGE_DIR.name}.engine.worker"
+WORKER_MODULE = f"{PACKAGE_DIR.name}.engine.service.worker"
 # This add-on's top-level module (`bl_ext.<repo>.blender_nerf_deform` as an extension).
 PACKAGE_DIR_MODULE = __package__.rpartition(".")[0]
 START_TIMEOUT_S = 120.0
@@ -61,6 +68,8 @@ class _Request:
     inbox: queue.Queue = field(default_factory=queue.Queue)
     blocking: bool = False
     proc: subprocess.Popen | None = None  # the worker it was sent to
+    send: tuple = ()  # (op, params, arrays, shared): what to send again when the worker misses shared content
+    resent: bool = False
 
 
 def worker_directory() -> str:
@@ -123,6 +132,9 @@ class WorkerClient:
         self._lock = threading.RLock()
         self._main_inbox: queue.Queue = queue.Queue()
         self._stderr_tail: collections.deque[str] = collections.deque(maxlen=_STDERR_LINES)
+        self._given: set[tuple[str, str]] = set()  # (slot, key) the running worker holds
+        self.bytes_sent = 0
+        self.sent: collections.deque[tuple[str, int]] = collections.deque(maxlen=256)
 
     # -- process lifecycle -------------------------------------------------
 
@@ -153,6 +165,7 @@ class WorkerClient:
         env.setdefault("NUMBA_CACHE_DIR", os.path.join(work, "numba_cache"))
         env.setdefault("PYTHONPYCACHEPREFIX", os.path.join(work, "pycache"))
         self._stderr_tail.clear()
+        self._given.clear()  # a new worker holds nothing yet
         try:
             proc = subprocess.Popen(
                 [self.python, "-m", WORKER_MODULE],
@@ -263,16 +276,45 @@ class WorkerClient:
 
     # -- requests --------------------------------------------------------------
 
-    def _send_request(self, request: _Request, op: str, params: dict, arrays: dict[str, np.ndarray] | None) -> None:
+    def _send_request(self, request: _Request, op: str, params: dict, arrays: dict[str, np.ndarray] | None,
+                      shared: dict | None = None) -> None:
+        request.send = (op, params, arrays, shared)
         with self._lock:
             self.ensure_started()
             request.proc = self._proc
+            params, arrays, given = self._with_shared(params, arrays, shared)
             self._requests[request.id] = request
             try:
-                write_message(self._proc.stdin, {"type": "request", "id": request.id, "op": op, "params": params}, arrays)
+                n = write_message(self._proc.stdin, {"type": "request", "id": request.id, "op": op, "params": params}, arrays)
             except (OSError, ValueError):
                 del self._requests[request.id]
                 raise WorkerError(f"the NeRF worker {self._exit_report()}", "crashed") from None
+            self._given |= given
+            self.bytes_sent += n
+            self.sent.append((op, n))
+
+    def _with_shared(self, params: dict, arrays: dict | None, shared: dict | None) -> tuple[dict, dict, set]:
+        """The request's params naming its shared content, its arrays plus the content the worker lacks."""
+        if not shared:
+            return params, arrays, set()
+        params = {**params, "shared": {slot: key for slot, (key, _load) in shared.items()}}
+        arrays, given = dict(arrays or {}), set()
+        for slot, (key, load) in shared.items():
+            if (slot, key) not in self._given:
+                arrays.update({f"{slot}.{name}": a for name, a in load().items()})
+                given.add((slot, key))
+        return params, arrays, given
+
+    def _resend_if_missing(self, request: _Request, header: dict) -> bool:
+        """Send a request again, with its shared content, when the worker did not hold it (once)."""
+        if header.get("type") != "error" or header.get("kind") != "missing" or request.resent or not request.send:
+            return False
+        op, params, arrays, shared = request.send
+        with self._lock:
+            self._given -= {(slot, key) for slot, (key, _load) in (shared or {}).items()}
+        request.resent = True
+        self._send_request(request, op, params, arrays, shared)
+        return True
 
     def submit(
         self,
@@ -283,10 +325,11 @@ class WorkerClient:
         on_done: Callable[[dict, dict], None] | None = None,
         on_error: Callable[[WorkerError], None] | None = None,
         on_progress: Callable[[float, str], None] | None = None,
+        shared: dict | None = None,
     ) -> int:
         """Send a request without waiting; callbacks run when `drain()` runs (a Blender timer)."""
         request = _Request(next(self._ids), on_done, on_error, on_progress)
-        self._send_request(request, op, params or {}, arrays)
+        self._send_request(request, op, params or {}, arrays, shared)
         return request.id
 
     def cancel(self, request_id: int) -> None:
@@ -311,6 +354,11 @@ class WorkerClient:
                 return handled
             handled += 1
             kind = header.get("type")
+            try:
+                if self._resend_if_missing(request, header):
+                    continue
+            except Exception as error:  # the content could not be loaded again (or the worker died): fail this request
+                header = {"type": "error", "kind": getattr(error, "kind", "input"), "message": str(error)}
             if kind == "progress" and request.on_progress:
                 request.on_progress(header["fraction"], header.get("message", ""))
             elif kind == "result" and request.on_done:
@@ -327,6 +375,7 @@ class WorkerClient:
         on_progress: Callable[[float, str], None] | None = None,
         should_cancel: Callable[[], bool] | None = None,
         poll_s: float = 0.05,
+        shared: dict | None = None,
     ) -> tuple[dict, dict[str, np.ndarray]]:
         """Send a request and wait for its answer (for renders and scripts).
 
@@ -334,7 +383,7 @@ class WorkerClient:
         returns True the request is cancelled and WorkerError(kind="cancelled") raised.
         """
         request = _Request(next(self._ids), blocking=True)
-        self._send_request(request, op, params or {}, arrays)
+        self._send_request(request, op, params or {}, arrays, shared)
         cancel_sent = False
         while True:
             try:
@@ -351,6 +400,8 @@ class WorkerClient:
             elif kind == "result":
                 return header["result"], out_arrays
             elif kind == "error":
+                if self._resend_if_missing(request, header):
+                    continue
                 raise _error_from(header)
 
 

@@ -8,8 +8,3 @@ is a bug and keeps its traceback.
 
 class EngineError(Exception):
     """Bad input or an impossible request; the message names the file, key or value at fault."""
-
-
-class NotImplementedYet(EngineError):
-    def __init__(self, command: str, issue: int):
-        super().__init__(f"`{command}` is not implemented yet (tracked in issue {issue})")

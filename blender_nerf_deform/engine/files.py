@@ -7,6 +7,8 @@ import tempfile
 from pathlib import Path
 from typing import BinaryIO, Callable
 
+import numpy as np
+
 from .errors import EngineError
 
 
@@ -47,3 +49,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> 
         except FileNotFoundError:
             pass
         raise
+
+
+def write_png_rgba(path, rgba: np.ndarray) -> None:
+    """Write an (H, W, 4) float straight-alpha image as an 8-bit RGBA PNG, atomically."""
+    from PIL import Image
+
+    arr = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    atomic_write(path, lambda f: Image.fromarray(arr, mode="RGBA").save(f, format="PNG"))

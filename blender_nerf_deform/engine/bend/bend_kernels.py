@@ -1,0 +1,90 @@
+"""Fused CPU kernels (numba) of the ray bender: the per-sample map and the deformed occupancy.
+
+`cage_bend.CageBend` runs these on CPU when `backend.use_kernels` says so and
+the same computation in torch elsewhere (CUDA); the tests check both agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import backend
+
+if backend.HAVE_NUMBA:
+    from numba import njit, prange
+
+    @njit(parallel=True, cache=True)
+    def map_samples(P, D, tet, located, linear, offset, rotation, rotate, occ, olo, oext, ores, out_p, out_d, keep):
+        """Per sample: the tet's affine (or identity outside every deformed tet), the rotated view
+        direction, and whether the rest point lies in an occupied cell of the NeRF's grid."""
+        for n in prange(P.shape[0]):
+            x, y, z = P[n, 0], P[n, 1], P[n, 2]
+            if tet[n] >= 0:
+                t = located[tet[n]]
+                px = linear[t, 0, 0] * x + linear[t, 0, 1] * y + linear[t, 0, 2] * z + offset[t, 0]
+                py = linear[t, 1, 0] * x + linear[t, 1, 1] * y + linear[t, 1, 2] * z + offset[t, 1]
+                pz = linear[t, 2, 0] * x + linear[t, 2, 1] * y + linear[t, 2, 2] * z + offset[t, 2]
+                dx, dy, dz = D[n, 0], D[n, 1], D[n, 2]
+                if rotate:
+                    out_d[n, 0] = rotation[t, 0, 0] * dx + rotation[t, 0, 1] * dy + rotation[t, 0, 2] * dz
+                    out_d[n, 1] = rotation[t, 1, 0] * dx + rotation[t, 1, 1] * dy + rotation[t, 1, 2] * dz
+                    out_d[n, 2] = rotation[t, 2, 0] * dx + rotation[t, 2, 1] * dy + rotation[t, 2, 2] * dz
+                else:
+                    out_d[n, 0], out_d[n, 1], out_d[n, 2] = dx, dy, dz
+            else:
+                px, py, pz = x, y, z
+                out_d[n, 0], out_d[n, 1], out_d[n, 2] = D[n, 0], D[n, 1], D[n, 2]
+            out_p[n, 0], out_p[n, 1], out_p[n, 2] = px, py, pz
+            # Same float32 formula as OccupancyGrid.cell_index, so identity poses match undeformed renders.
+            gx = np.floor((px - olo[0]) / oext[0] * ores)
+            gy = np.floor((py - olo[1]) / oext[1] * ores)
+            gz = np.floor((pz - olo[2]) / oext[2] * ores)
+            r = int(ores)
+            if gx >= 0 and gy >= 0 and gz >= 0 and gx < ores and gy < ores and gz < ores:
+                keep[n] = occ[int(gx) + r * (int(gy) + r * int(gz))]
+            else:
+                keep[n] = False
+
+    @njit(parallel=True, cache=True)
+    def cell_images(ijk, corner_tet, rest_lo, rest_cell, forward, lo, hi):
+        """Box of each occupied rest cell's image: the cell sent through the forward affine of every
+        tet holding one of its corners (identity for corners outside the rest cage)."""
+        for c in prange(ijk.shape[0]):
+            for a in range(3):
+                lo[c, a] = np.inf
+                hi[c, a] = -np.inf
+            for j in range(8):
+                t = corner_tet[c, j]
+                seen = False
+                for q in range(j):
+                    if corner_tet[c, q] == t:
+                        seen = True
+                if seen:
+                    continue
+                for k in range(8):
+                    x = rest_lo[0] + (ijk[c, 0] + (k & 1)) * rest_cell[0]
+                    y = rest_lo[1] + (ijk[c, 1] + ((k >> 1) & 1)) * rest_cell[1]
+                    z = rest_lo[2] + (ijk[c, 2] + (k >> 2)) * rest_cell[2]
+                    if t >= 0:
+                        qx = forward[t, 0, 0] * x + forward[t, 0, 1] * y + forward[t, 0, 2] * z + forward[t, 0, 3]
+                        qy = forward[t, 1, 0] * x + forward[t, 1, 1] * y + forward[t, 1, 2] * z + forward[t, 1, 3]
+                        qz = forward[t, 2, 0] * x + forward[t, 2, 1] * y + forward[t, 2, 2] * z + forward[t, 2, 3]
+                    else:
+                        qx, qy, qz = x, y, z
+                    lo[c, 0] = min(lo[c, 0], qx)
+                    lo[c, 1] = min(lo[c, 1], qy)
+                    lo[c, 2] = min(lo[c, 2], qz)
+                    hi[c, 0] = max(hi[c, 0], qx)
+                    hi[c, 1] = max(hi[c, 1], qy)
+                    hi[c, 2] = max(hi[c, 2], qz)
+
+    @njit(parallel=True, cache=True)
+    def mark_boxes(i0, i1, r, mask):
+        """Set every grid cell of every box [i0, i1] (inclusive); concurrent writes all store True."""
+        for c in prange(i0.shape[0]):
+            for z in range(i0[c, 2], i1[c, 2] + 1):
+                for y in range(i0[c, 1], i1[c, 1] + 1):
+                    for x in range(i0[c, 0], i1[c, 0] + 1):
+                        mask[x + r * (y + r * z)] = True
+
+

@@ -1,0 +1,103 @@
+"""`python -m blender_nerf_deform.engine <command>`: the engine's command line.
+
+A public interface (DESIGN.md): scripts, render farms and the project's own
+benchmarks call it, so the commands and options below stay stable. One module
+per command (cli/<command>.py) turns the parsed options into calls of the
+stage functions, the same ones the worker serves; it is imported only when its
+command runs, so that `--help` never loads torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from ..errors import EngineError
+
+PROG = "python -m blender_nerf_deform.engine"
+
+
+def _command(module: str):
+    """Handler that runs `cli/<module>.py`'s main(args), imported only when the command runs."""
+
+    def handler(args: argparse.Namespace) -> int:
+        return importlib.import_module(f"{__package__}.{module}").main(args)
+
+    return handler
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Train a NeRF, extract its mesh, build a tetrahedral cage, and render "
+        "it undeformed or ray-bent by a deformed cage. No Blender needed.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("train", help="train a NeRF on a transforms.json dataset")
+    p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder; the checkpoint is RUN_DIR/nerf.ckpt")
+    p.add_argument("--max-seconds", type=float, metavar="S", help="stop training after S seconds")
+    p.add_argument("--steps", type=int, metavar="N", help="stop training after N steps")
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="seed of the initial weights and the ray sampling (default 0)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
+    p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/nerf.ckpt when it exists")
+    p.add_argument("--checkpoint-every", type=float, default=120.0, metavar="S", help="rewrite the checkpoint every S seconds (default 120)")
+    p.set_defaults(handler=_command("train"))
+
+    p = sub.add_parser("eval", help="print PSNR of a checkpoint over a dataset's frames")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.set_defaults(handler=_command("eval"))
+
+    p = sub.add_parser("render", help="render frames of a NeRF, optionally ray-bent by a deformed cage")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--cameras", required=True, metavar="TRANSFORMS_JSON", help="cameras to render, in transforms.json form")
+    p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<name>.png (RGBA, straight alpha) per frame")
+    p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
+    p.add_argument("--deformed", metavar="V.npy|DIR", help="(N,3) deformed positions of the cage's vertices, same order; "
+                   "or a folder of such .npy poses, one per frame of --cameras, matched in natural name order")
+    p.add_argument("--downscale", type=int, default=1, metavar="K", help="render at 1/K of the cameras' resolution")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.set_defaults(handler=_command("render"))
+
+    p = sub.add_parser("extract", help="extract a filtered surface mesh from a NeRF's density")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--out", required=True, metavar="MESH.ply", help="output mesh with vertex colours")
+    p.add_argument("--threshold", type=float, metavar="T", help="density threshold of the surface (default 10)")
+    p.add_argument("--resolution", type=int, metavar="R", help="grid resolution per axis (default 256)")
+    p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V "
+                   "(world units cubed; default: 1%% of the largest component's volume)")
+    p.add_argument("--decimate", type=int, metavar="FACES", help="decimate the filtered mesh to about FACES faces")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.set_defaults(handler=_command("extract"))
+
+    p = sub.add_parser("cage", help="build the tetrahedral cage around an extracted mesh, once")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--mesh", required=True, metavar="MESH.ply", help="mesh written by `extract`")
+    p.add_argument("--out", required=True, metavar="CAGE.npz", help="cage: `vertices` (N,3) and `tets` (M,4)")
+    p.add_argument("--margin", type=float, metavar="M", help="distance from the object to the cage's boundary, world units "
+                   "(default 3%% of the mesh's diagonal; widened where the NeRF's density is still soft there)")
+    p.add_argument("--edge-length", type=float, metavar="L", help="target tet edge length, world units")
+    p.add_argument("--target-tets", type=int, metavar="N", help="approximate number of tets (ignored with --edge-length)")
+    p.add_argument("--threshold", type=float, metavar="T", help="surface density threshold used for extraction (default 10)")
+    p.set_defaults(handler=_command("cage"))
+
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args) or 0
+    except EngineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

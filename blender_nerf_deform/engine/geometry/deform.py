@@ -1,0 +1,374 @@
+"""Deformers of the cage: an affine transform of a region, and ARAP from handles.
+
+Regions are chosen on the extracted mesh (the artist selects its vertices in
+Blender) and mapped to cage vertices through the surface embedding: the cage
+vertices that carry the selected surface vertices' barycentric weights.
+
+ARAP (elements energy on tets, libigl's cotangent weights; our local/global
+iteration with numba kernels and a prefactored sparse LU, or libigl's
+`arap_precomputation` / `arap_solve` as the reference and for the spokes
+energies): precomputed once per set of handles and pins, then solved per
+frame for the handles' target affines (location, rotation, scale of their
+Empties). Two ways to solve:
+- `solve(transforms)`: iterate from a deterministic start (the rest cage, or
+  `initial`) until the largest vertex step falls below `tol` x the cage's
+  diagonal, at most `max_iter` iterations. A frame's result then depends only
+  on that frame's handles, as a render farm needs.
+- `step(transforms, iterations=1)`: warm-started from the previous result, a
+  fixed number of iterations: the interactive preview (one iteration per
+  handle move converges over successive moves).
+Neither hangs: both are bounded by their iteration count; a non-finite result
+raises, and a solve that did not reach `tol` says so in its result (or raises
+with `strict=True`)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import backend as code_path
+from ..errors import EngineError
+from . import arap_kernels
+from .arap_kernels import _E0, _E1
+
+
+def _matrix(A) -> np.ndarray:
+    A = np.asarray(A, dtype=np.float64)
+    if A.shape == (3, 4):
+        A = np.vstack([A, [0, 0, 0, 1]])
+    if A.shape != (4, 4):
+        raise EngineError(f"a transform must be a 4x4 (or 3x4) matrix, got shape {A.shape}")
+    if not np.isfinite(A).all():
+        raise EngineError("a transform has non-finite entries")
+    return A
+
+
+def apply_affine(points: np.ndarray, A) -> np.ndarray:
+    A = _matrix(A)
+    return np.asarray(points, dtype=np.float64) @ A[:3, :3].T + A[:3, 3]
+
+
+def affine_region(vertices: np.ndarray, region: np.ndarray, A) -> np.ndarray:
+    """Cage vertices with those of `region` (indices or boolean mask) moved by the affine A; others unchanged."""
+    V = np.array(vertices, dtype=np.float64, copy=True)
+    idx = _indices(region, len(V), "region")
+    if len(idx) == 0:
+        raise EngineError("the region to transform has no vertices")
+    V[idx] = apply_affine(V[idx], A)
+    return V
+
+
+def _indices(region, n: int, name: str) -> np.ndarray:
+    r = np.asarray(region)
+    if r.dtype == bool:
+        if r.shape != (n,):
+            raise EngineError(f"{name}: a boolean mask must have one entry per vertex ({n}), got {r.shape}")
+        return np.flatnonzero(r)
+    r = r.astype(np.int64).ravel()
+    if r.size and (r.min() < 0 or r.max() >= n):
+        raise EngineError(f"{name} indexes vertices outside 0..{n - 1}")
+    return np.unique(r)
+
+
+def check_disjoint(regions: list, n: int, names: list[str]) -> list[np.ndarray]:
+    """Index arrays of the regions; EngineError if one is empty or two share a vertex."""
+    out = [_indices(r, n, name) for r, name in zip(regions, names)]
+    for r, name in zip(out, names):
+        if len(r) == 0:
+            raise EngineError(f"{name} has no vertices")
+    owner = np.full(n, -1)
+    for i, r in enumerate(out):
+        clash = owner[r]
+        if (clash >= 0).any():
+            j = int(clash[clash >= 0][0])
+            raise EngineError(f"{names[j]} and {names[i]} overlap: they share {(clash >= 0).sum()} vertices")
+        owner[r] = i
+    return out
+
+
+def regions_to_cage(embedding, surface_regions: list, n_cage_vertices: int, names: list[str] | None = None) -> list[np.ndarray]:
+    """Map regions of the extracted mesh's vertices to regions of cage vertices.
+
+    A cage vertex joins a region when that region's selected surface vertices
+    put barycentric weight on it; a cage vertex claimed by several regions goes
+    to the one that puts the most weight on it. Errors for an empty region,
+    overlapping surface selections, or a region left with no cage vertex.
+    """
+    n_surface = len(embedding.weights)
+    names = names or [f"handle region {i}" for i in range(len(surface_regions))]
+    regs = check_disjoint(surface_regions, n_surface, names)
+    W = np.stack([embedding.cage_vertex_weights(r, n_cage_vertices) for r in regs])  # (R, n_cage)
+    best = W.argmax(0)
+    out = []
+    for i, name in enumerate(names):
+        cage_idx = np.flatnonzero((W[i] > 1e-9) & (best == i))
+        if len(cage_idx) == 0:
+            raise EngineError(f"{name} maps to no cage vertex (its surface vertices are claimed by other regions)")
+        out.append(cage_idx)
+    return out
+
+
+def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, power: float = 2.0) -> np.ndarray:
+    """Baseline deformer: each vertex blends the regions' affines by inverse distance to each region.
+
+    What ARAP is compared against (the seed's cube check); not used for editing.
+    """
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(rest_vertices, dtype=np.float64)
+    regs = check_disjoint(regions, len(V), [f"region {i}" for i in range(len(regions))])
+    d = np.stack([cKDTree(V[r]).query(V)[0] for r in regs])  # (R, N)
+    w = 1.0 / np.maximum(d, 1e-12) ** power
+    for i, r in enumerate(regs):
+        w[:, r] = 0.0
+        w[i, r] = 1.0
+    w /= w.sum(0, keepdims=True)
+    moved = np.stack([apply_affine(V, A) for A in transforms])  # (R, N, 3)
+    return np.einsum("rn,rnc->nc", w, moved)
+
+
+# ---------------------------------------------------------------------------
+# ARAP: our own local/global iteration (elements energy on tets).
+#
+# Why not igl.arap_solve per frame: each call pays libigl's generic per-solve
+# work (covariance scatter, a 3x3 SVD per tet, the right-hand side through
+# sparse products, mostly on one core): ~130 ms per iteration on a 22k-vertex
+# / 118k-tet cage on 2 cores, over the 100 ms per frame we allow. Here the
+# local step (covariance, best rotation and right-hand side of every tet) is
+# one fused parallel numba kernel (~23 ms there), and the global step reuses a
+# sparse LU (scipy's SuperLU, symmetric ordering) of the constrained cotangent
+# Laplacian, factored once per set of handles (~24 ms for 3 right-hand sides).
+# Same energy and weights as libigl's ARAP_ENERGY_TYPE_ELEMENTS (its
+# `cotmatrix_entries`), so both converge to the same deformation;
+# tools/bench_geometry_arap.py runs them side by side.
+# ---------------------------------------------------------------------------
+
+# Edges of a tet in the column order of igl.cotmatrix_entries.
+@dataclass
+class ArapResult:
+    vertices: np.ndarray
+    iterations: int
+    last_step: float  # largest vertex move of the last iteration, relative to the cage's diagonal
+    converged: bool
+    seconds: float
+
+
+class ArapDeformer:
+    """ARAP on the cage's tets with handle regions (each moved by an affine) and pinned regions.
+
+    backend: "numba" (our local/global iteration above; elements energy only),
+    "igl" (libigl's arap_precomputation / arap_solve, any energy: the reference
+    the benchmark compares against), or "auto" (numba for the elements energy
+    where numba is installed, else igl).
+    """
+
+    ENERGIES = ("elements", "spokes", "spokes_and_rims")
+
+    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, handles: list, pins: list | None = None, energy: str = "elements", backend: str = "auto"):
+        V = np.ascontiguousarray(rest_vertices, dtype=np.float64)
+        T = np.ascontiguousarray(tets, dtype=np.int64)
+        pins = list(pins or [])
+        if not handles and not pins:
+            raise EngineError("ARAP needs at least one handle or pinned region")
+        names = [f"handle region {i}" for i in range(len(handles))] + [f"pinned region {i}" for i in range(len(pins))]
+        regs = check_disjoint(list(handles) + pins, len(V), names)
+        self.handles, self.pins = regs[: len(handles)], regs[len(handles) :]
+        self.rest, self.tets = V, T
+        self.diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+        self.b = np.concatenate(regs).astype(np.int64)
+        if energy not in self.ENERGIES:
+            raise EngineError(f"unknown ARAP energy {energy!r}; one of {sorted(self.ENERGIES)}")
+        if backend == "auto":
+            backend = "numba" if (energy == "elements" and code_path.use_kernels("cpu")) else "igl"
+        if backend == "numba" and (energy != "elements" or not code_path.HAVE_NUMBA):
+            raise EngineError("the numba ARAP backend needs numba and runs the elements energy only")
+        if backend not in ("numba", "igl"):
+            raise EngineError(f"unknown ARAP backend {backend!r}; one of auto, numba, igl")
+        self.backend, self.energy_type = backend, energy
+        t0 = time.perf_counter()
+        if backend == "igl":
+            import igl
+
+            self._igl = igl
+            self.data = igl.ARAPData()
+            self.data.energy = {
+                "elements": igl.ARAP_ENERGY_TYPE_ELEMENTS,
+                "spokes": igl.ARAP_ENERGY_TYPE_SPOKES,
+                "spokes_and_rims": igl.ARAP_ENERGY_TYPE_SPOKES_AND_RIMS,
+            }[energy]
+            self.data.max_iter = 1
+            igl.arap_precomputation(V, T, 3, self.b.astype(np.int32), self.data)
+        else:
+            self._precompute()
+        self.precompute_s = time.perf_counter() - t0
+        self.U: np.ndarray | None = None  # last result (warm start of `step`)
+
+    def _precompute(self):
+        """Cotangent weights per tet edge, rest edge vectors, and the LU of the constrained system."""
+        import igl
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+        from scipy.sparse.linalg import splu
+
+        V, T, n = self.rest, self.tets, len(self.rest)
+        self._W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)  # (M, 6)
+        self._E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])  # (M, 6, 3) rest edge vectors
+        # The energy's quadratic form sum w |u_i - u_j|^2 (= -igl.cotmatrix), assembled from the same weights.
+        i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self._W.ravel()
+        L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))), shape=(n, n)).tocsr()
+        constrained = np.zeros(n, dtype=bool)
+        constrained[self.b] = True
+        self._free = np.flatnonzero(~constrained)
+        Lf = L[self._free]
+        self._Lfb = Lf[:, self.b].tocsr()
+        # Every connected part of the cage needs a handle or pin, else its position is undetermined.
+        n_parts, part = connected_components(L, directed=False)
+        loose = np.setdiff1d(np.arange(n_parts), part[self.b])
+        if len(loose):
+            raise EngineError(f"ARAP: {len(loose)} connected part(s) of the cage ({int(np.isin(part, loose).sum())} vertices) hold no handle or pinned vertex")
+        self._lu = None
+        if len(self._free):
+            try:
+                # Symmetric positive definite: a symmetric fill-reducing ordering and diagonal
+                # pivots keep the factors about half the size of SuperLU's default (COLAMD).
+                self._lu = splu(Lf[:, self._free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
+            except RuntimeError as e:
+                raise EngineError(f"ARAP system is singular ({e}); is the cage degenerate?") from e
+        # Which (tet, corner) slots touch each vertex, to gather the right-hand side in parallel.
+        self._slots = np.argsort(T.ravel(), kind="stable")
+        self._start = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(T.ravel(), minlength=n), out=self._start[1:])
+        self._corner = np.empty((len(T), 4, 3))
+        self._tet_energy = np.empty(len(T))
+        self._B = np.empty((n, 3))
+
+    def _local(self, U: np.ndarray) -> None:
+        arap_kernels.arap_local(U, self.tets, self._W, self._E, self._corner, self._tet_energy)
+
+    def energy(self, vertices: np.ndarray) -> float:
+        """ARAP (elements) energy of `vertices`: sum over tets and edges of w |u_i - u_j - R_t (v_i - v_j)|^2
+        with each tet's best rotation R_t (0 for a rigid motion). Needs the numba backend."""
+        if self.backend != "numba":
+            raise EngineError("ARAP energy is computed by the numba backend")
+        self._local(np.ascontiguousarray(vertices, dtype=np.float64))
+        return float(self._tet_energy.sum())
+
+    def constraints(self, transforms: list) -> np.ndarray:
+        """Target positions of the constrained vertices (handles moved by their affines, pins at rest)."""
+        if len(transforms) != len(self.handles):
+            raise EngineError(f"ARAP has {len(self.handles)} handle regions but got {len(transforms)} transforms")
+        parts = [apply_affine(self.rest[h], A) for h, A in zip(self.handles, transforms)]
+        parts += [self.rest[p] for p in self.pins]
+        return np.ascontiguousarray(np.concatenate(parts) if parts else np.zeros((0, 3)))
+
+    def _one_iteration(self, bc: np.ndarray, U: np.ndarray, fixed_rhs) -> np.ndarray:
+        if self.backend == "igl":
+            return self._igl.arap_solve(bc, self.data, U)
+        self._local(U)  # best rotation per tet for U, and the right-hand side it implies
+        arap_kernels.gather_rhs(self._corner, self._start, self._slots, self._B)
+        U_new = np.empty_like(U)
+        U_new[self.b] = bc
+        if self._lu is not None:
+            U_new[self._free] = self._lu.solve(self._B[self._free] - fixed_rhs)
+        return U_new
+
+    def _iterate(self, bc: np.ndarray, U: np.ndarray, iterations: int, tol: float | None):
+        step = np.inf
+        it = 0
+        fixed_rhs = self._Lfb @ bc if self.backend == "numba" else None  # the constrained vertices' pull on the free ones
+        for it in range(1, iterations + 1):
+            U_new = self._one_iteration(bc, U, fixed_rhs)
+            if not np.isfinite(U_new).all():
+                raise EngineError(f"ARAP diverged (non-finite positions after {it} iterations); check the handles' transforms")
+            step = float(np.abs(U_new - U).max()) / self.diag
+            U = U_new
+            if tol is not None and step < tol:
+                break
+        return U, it, step
+
+    def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None, strict: bool = False) -> ArapResult:
+        """Iterate from `initial` (default: the linear blend of the handles' affines, a deterministic
+        start that is already right for rigid motions) until converged or `max_iter` iterations."""
+        t0 = time.perf_counter()
+        bc = self.constraints(transforms)
+        if initial is None:
+            regions = self.handles + self.pins
+            mats = [_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins)
+            initial = linear_blend(self.rest, regions, mats)
+        U = np.array(initial, dtype=np.float64)
+        U[self.b] = bc
+        U, it, step = self._iterate(bc, U, max_iter, tol)
+        res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0)
+        if strict and not res.converged:
+            raise EngineError(f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, tolerance {tol:.0e})")
+        self.U = U
+        return res
+
+    def step(self, transforms: list, iterations: int = 1) -> ArapResult:
+        """A fixed number of iterations warm-started from the previous result (interactive preview)."""
+        t0 = time.perf_counter()
+        bc = self.constraints(transforms)
+        U = np.array(self.rest if self.U is None else self.U, dtype=np.float64)
+        U[self.b] = bc
+        U, it, step = self._iterate(bc, U, iterations, None)
+        self.U = U
+        return ArapResult(U, it, step, False, time.perf_counter() - t0)
+
+
+def edge_length_distortion(rest_vertices: np.ndarray, deformed_vertices: np.ndarray, tets: np.ndarray) -> float:
+    """Mean relative change of the tet edge lengths (0 = rigid)."""
+    T = np.asarray(tets)
+    e = np.concatenate([T[:, [i, j]] for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    l0 = np.linalg.norm(rest_vertices[e[:, 0]] - rest_vertices[e[:, 1]], axis=1)
+    l1 = np.linalg.norm(deformed_vertices[e[:, 0]] - deformed_vertices[e[:, 1]], axis=1)
+    return float(np.mean(np.abs(l1 - l0) / l0))
+
+
+def split_regions(index: np.ndarray, counts: np.ndarray) -> list[np.ndarray]:
+    """Regions sent concatenated (`index`) with their sizes (`counts`) → one index array per region."""
+    index, counts = np.asarray(index, dtype=np.int64), np.asarray(counts, dtype=np.int64)
+    if counts.ndim != 1 or (counts < 0).any() or counts.sum() != len(index):
+        raise EngineError(f"region sizes {counts.tolist()} do not add up to the {len(index)} region indices given")
+    return np.split(index, np.cumsum(counts)[:-1]) if len(counts) else []
+
+
+class RegionDeformer:
+    """The cage pose of handle transforms: regions of the extracted mesh moved by their handles.
+
+    `mode` "ARAP": the handles' regions follow their transforms, the pinned region
+    stays, everything else moves as rigidly as possible (ArapDeformer, factorized
+    once here). "AFFINE": each region's cage vertices take their handle's transform,
+    the rest stay. Built once per cage, embedding and set of regions; `solve`
+    per frame depends only on the transforms given (F12, farms and the preview agree).
+    """
+
+    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_regions: list,
+                 pin_region: np.ndarray | None = None, names: list[str] | None = None, mode: str = "ARAP"):
+        if mode not in ("ARAP", "AFFINE"):
+            raise EngineError(f"unknown deformation mode {mode!r}: ARAP or AFFINE")
+        self.mode = mode
+        self.rest = np.asarray(rest_vertices, dtype=np.float64)
+        names = list(names or [f"handle {i}" for i in range(len(handle_regions))])
+        pins = [np.asarray(pin_region, dtype=np.int64)] if pin_region is not None and len(pin_region) else []
+        regions = regions_to_cage(embedding, list(handle_regions) + pins, len(self.rest),
+                                  names + ["the pinned region"] * len(pins))
+        self.n_handles = len(handle_regions)
+        self.cage_regions = regions[: self.n_handles]
+        self.arap = ArapDeformer(self.rest, tets, self.cage_regions, regions[self.n_handles:]) if mode == "ARAP" else None
+        self.precompute_s = self.arap.precompute_s if self.arap is not None else 0.0
+
+    def solve(self, transforms: list) -> tuple[np.ndarray, dict]:
+        """(deformed cage vertices, stats) for one 4x4 transform per handle."""
+        if len(transforms) != self.n_handles:
+            raise EngineError(f"{len(transforms)} handle transforms for {self.n_handles} handles")
+        if self.arap is None:
+            deformed = self.rest
+            for region, transform in zip(self.cage_regions, transforms):
+                deformed = affine_region(deformed, region, transform)
+            return deformed, {}
+        result = self.arap.solve(transforms)
+        return result.vertices, {"iterations": result.iterations, "converged": bool(result.converged),
+                                 "solve_s": result.seconds}

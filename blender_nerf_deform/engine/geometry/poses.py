@@ -1,0 +1,68 @@
+"""Cage poses on disk: `--deformed V.npy` (one (N,3) pose) or a folder of them (an animation).
+
+A folder's `*.npy` files, in natural name order (digit runs compare as numbers,
+so `pose_2` comes before `pose_10`), are the poses of the frames in order.
+Every pose is read with `allow_pickle=False` and checked (shape, vertex count,
+finite) before anything renders, so a bad file stops the run with nothing
+half-done. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EngineError
+
+
+def _natural_key(path: Path):
+    return [(0, int(part), part) if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", path.name)]
+
+
+def pose_files(deformed_path) -> list[Path]:
+    """The pose file(s) named by --deformed: [V.npy], or a folder's *.npy in natural name order."""
+    path = Path(deformed_path)
+    if path.is_dir():
+        files = sorted((p for p in path.glob("*.npy") if p.is_file()), key=_natural_key)
+        if not files:
+            raise EngineError(f"--deformed {path}: the folder holds no .npy pose files")
+        return files
+    if not path.exists():
+        raise EngineError(f"deformed vertices {path} do not exist")
+    return [path]
+
+
+def load_pose(path, vertex_shape: tuple) -> np.ndarray:
+    """One (N,3) pose of the cage's N vertices, checked; errors name the file."""
+    try:
+        deformed = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise EngineError(f"deformed vertices {path} do not exist") from None
+    except (ValueError, OSError) as exc:
+        raise EngineError(f"cannot read deformed vertices {path}: {exc}") from None
+    if not isinstance(deformed, np.ndarray) or deformed.ndim != 2 or deformed.shape[1] != 3 \
+            or not np.issubdtype(deformed.dtype, np.number):
+        shape = getattr(deformed, "shape", None)
+        raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
+                          f"(same vertices, same order), got {shape}")
+    if deformed.shape != vertex_shape:
+        raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
+                          f"(same vertices, same order), got {deformed.shape}: {deformed.shape[0]} vertices, "
+                          f"the cage has {vertex_shape[0]}")
+    bad = np.flatnonzero(~np.isfinite(deformed).all(axis=1))
+    if len(bad):
+        raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, but {len(bad)} of its "
+                          f"rows hold NaN or inf (first: vertex {bad[0]})")
+    return deformed.astype(np.float64)
+
+
+def load_poses(cage_vertices: np.ndarray, deformed_path, n_frames: int) -> list[np.ndarray]:
+    """One checked pose per frame: a single file repeated, or a folder's files matched to frames in order."""
+    files = pose_files(deformed_path)
+    if Path(deformed_path).is_dir() and len(files) != n_frames:
+        raise EngineError(f"--deformed {deformed_path}: {len(files)} pose files (.npy) for {n_frames} camera frames "
+                          "in --cameras; give one pose per frame")
+    poses = [load_pose(f, cage_vertices.shape) for f in files]
+    return poses if len(poses) == n_frames else poses * n_frames

@@ -1,0 +1,194 @@
+"""Fused CPU kernels (numba) for the hash encoding: the forward gather and the backward scatter-add.
+
+Why: on CPU the torch formulation of the encoding materialises (N, L, 8, 3)
+int64 index tensors and (N, L, 8, F) gathered features; it is memory-bound and
+runs at ~0.1-0.4 M points/s on the project's 2-core machine (BENCHMARKS.md).
+These kernels compute each point's indices, weights and features in registers
+and write only the (N, L*F) output: forward parallel over points, backward
+parallel over levels (levels own disjoint table rows, so no atomics are needed).
+
+The kernels are used only for CPU tensors whose positions do not require
+gradients and when `backend.use_kernels` says so; CUDA (and any other case)
+takes the torch path of `encoding.py`, so the same model runs everywhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .. import backend
+
+if backend.HAVE_NUMBA:
+    from numba import njit, prange
+
+
+if backend.HAVE_NUMBA:
+
+    @njit(cache=True, fastmath=False, inline="always")
+    def _row(cx, cy, cz, res, dense, size, offset):
+        if dense:
+            if cx > res:
+                cx = res
+            if cy > res:
+                cy = res
+            if cz > res:
+                cz = res
+            return offset + cx + cy * (res + 1) + cz * (res + 1) * (res + 1)
+        # int64 arithmetic: the low 32 bits equal instant-ngp's uint32 hash, and size is a power of two.
+        return offset + ((cx ^ (cy * 2654435761) ^ (cz * 805459861)) & (size - 1))
+
+    @njit(parallel=True, cache=True, fastmath=True)
+    def _hash_forward(x, table, res_arr, dense_arr, size_arr, off_arr, out):
+        # Blocks of points in parallel; inside a block, level by level, so that the rows one
+        # level touches (at most 2^log2T x F floats) stay in cache while the block is served.
+        n = x.shape[0]
+        n_levels = res_arr.shape[0]
+        nf = table.shape[1]
+        block = 2048
+        n_blocks = (n + block - 1) // block
+        for b in prange(n_blocks):
+            start = b * block
+            stop = min(n, start + block)
+            for lvl in range(n_levels):
+                res = res_arr[lvl]
+                dense = dense_arr[lvl]
+                size = size_arr[lvl]
+                off = off_arr[lvl]
+                for i in range(start, stop):
+                    fx = min(max(x[i, 0], 0.0), 1.0) * res
+                    fy = min(max(x[i, 1], 0.0), 1.0) * res
+                    fz = min(max(x[i, 2], 0.0), 1.0) * res
+                    bx = np.int64(np.floor(fx))
+                    by = np.int64(np.floor(fy))
+                    bz = np.int64(np.floor(fz))
+                    tx = fx - bx
+                    ty = fy - by
+                    tz = fz - bz
+                    if nf <= 4:
+                        # Accumulate in registers (out may alias table as far as numba knows).
+                        a0 = np.float32(0.0)
+                        a1 = np.float32(0.0)
+                        a2 = np.float32(0.0)
+                        a3 = np.float32(0.0)
+                        for c in range(8):
+                            ox = c & 1
+                            oy = (c >> 1) & 1
+                            oz = (c >> 2) & 1
+                            w = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                            row = _row(bx + ox, by + oy, bz + oz, res, dense, size, off)
+                            a0 += w * table[row, 0]
+                            if nf > 1:
+                                a1 += w * table[row, 1]
+                            if nf > 2:
+                                a2 += w * table[row, 2]
+                            if nf > 3:
+                                a3 += w * table[row, 3]
+                        out[i, lvl * nf] = a0
+                        if nf > 1:
+                            out[i, lvl * nf + 1] = a1
+                        if nf > 2:
+                            out[i, lvl * nf + 2] = a2
+                        if nf > 3:
+                            out[i, lvl * nf + 3] = a3
+                    else:
+                        for f in range(nf):
+                            out[i, lvl * nf + f] = 0.0
+                        for c in range(8):
+                            ox = c & 1
+                            oy = (c >> 1) & 1
+                            oz = (c >> 2) & 1
+                            w = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                            row = _row(bx + ox, by + oy, bz + oz, res, dense, size, off)
+                            for f in range(nf):
+                                out[i, lvl * nf + f] += w * table[row, f]
+
+    @njit(parallel=True, cache=True, fastmath=True)
+    def _hash_backward(x, grad_out, res_arr, dense_arr, size_arr, off_arr, grad_table, touched):
+        n = x.shape[0]
+        n_levels = res_arr.shape[0]
+        nf = grad_table.shape[1]
+        # Threads take levels in the order 0, L-1, 1, L-2, ...: prange splits the range in
+        # contiguous parts, and this mixes cheap (dense, coarse) and costly (hashed) levels.
+        for j in prange(n_levels):
+            lvl = j // 2 if j % 2 == 0 else n_levels - 1 - j // 2
+            res = res_arr[lvl]
+            dense = dense_arr[lvl]
+            size = size_arr[lvl]
+            off = off_arr[lvl]
+            for i in range(n):
+                fx = min(max(x[i, 0], 0.0), 1.0) * res
+                fy = min(max(x[i, 1], 0.0), 1.0) * res
+                fz = min(max(x[i, 2], 0.0), 1.0) * res
+                bx = np.int64(np.floor(fx))
+                by = np.int64(np.floor(fy))
+                bz = np.int64(np.floor(fz))
+                tx = fx - bx
+                ty = fy - by
+                tz = fz - bz
+                for c in range(8):
+                    ox = c & 1
+                    oy = (c >> 1) & 1
+                    oz = (c >> 2) & 1
+                    w = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                    row = _row(bx + ox, by + oy, bz + oz, res, dense, size, off)
+                    touched[row] = 1
+                    for f in range(nf):
+                        grad_table[row, f] += w * grad_out[i, lvl * nf + f]
+
+
+def kernels_apply(x: torch.Tensor, table: torch.Tensor) -> bool:
+    """Whether the fused CPU kernels can run these tensors (CPU float32, positions without grad)."""
+    return (backend.use_kernels(x.device) and table.device.type == "cpu"
+            and table.dtype == torch.float32 and not x.requires_grad)
+
+
+class LevelArrays:
+    """Per-level constants of a HashEncoding as numpy arrays for the kernels (cached on the encoding)."""
+
+    def __init__(self, enc):
+        self.res = np.asarray(enc.resolutions, dtype=np.int64)
+        self.dense = np.asarray(enc.dense_levels, dtype=np.bool_)
+        self.size = np.asarray(enc.level_sizes, dtype=np.int64)
+        self.off = np.cumsum([0] + list(enc.level_sizes[:-1])).astype(np.int64)
+
+
+class HashReuseCPU(torch.autograd.Function):
+    """Identity on an encoding already computed (without grad) for positions x; backward = the table's
+    gradient, as HashEncodeCPU. Lets training reuse the encoding of its density-only first pass."""
+
+    @staticmethod
+    def forward(ctx, encoded, x, table, enc):
+        ctx.save_for_backward(x)
+        ctx.enc = enc
+        return encoded.clone() if encoded.requires_grad else encoded
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        _, g, _ = HashEncodeCPU.backward(ctx, grad_out)
+        return None, None, g, None
+
+
+class HashEncodeCPU(torch.autograd.Function):
+    """Fused hash encoding on CPU: gradients flow to the table only (positions are data)."""
+
+    @staticmethod
+    def forward(ctx, x, table, enc):
+        arrs = enc._kernel_arrays
+        xn = x.detach().contiguous().numpy()
+        out = torch.empty(x.shape[0], enc.n_levels * enc.n_features, dtype=torch.float32)
+        _hash_forward(xn, table.detach().numpy(), arrs.res, arrs.dense, arrs.size, arrs.off, out.numpy())
+        ctx.save_for_backward(x)
+        ctx.enc = enc
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        (x,) = ctx.saved_tensors
+        enc = ctx.enc
+        arrs = enc._kernel_arrays
+        grad_table = enc.grad_buffer()
+        _hash_backward(x.contiguous().numpy(), grad_out.contiguous().numpy(), arrs.res, arrs.dense, arrs.size,
+                       arrs.off, grad_table.numpy(), enc.touched_rows())
+        # In fused-grad mode the gradient stays in the encoding's buffer for the lazy Adam.
+        return None, (None if enc.fused_grad else grad_table), None

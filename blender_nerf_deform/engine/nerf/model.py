@@ -1,0 +1,169 @@
+"""The NeRF field: hash encoding + tiny density MLP + view-dependent colour MLP (instant-ngp).
+
+Public interface (other stages rely on these names):
+
+- `NerfConfig`: the one config dataclass, stored in the checkpoint.
+- `NerfModel(config)`: `.config`, `.aabb` (2x3 world bounds), `.device`,
+  `.occupancy` (an `OccupancyGrid`), `.encoding` (the `HashEncoding`),
+  `density(points[N,3] world) -> [N]`, `query(points, dirs) -> (density[N], rgb[N,3])`,
+  and the split the renderer uses so that training encodes each sample once:
+  `encode(points) -> (encoding, inside, normalized)`,
+  `features_from_encoding(encoding, inside) -> (density, geo)` and `color(geo, dirs) -> rgb`.
+- `resolve_device("auto"|"cpu"|"cuda")`, `device_summary()` (torch build, CUDA devices).
+
+Points outside the aabb have density 0. Directions need not be normalised.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from ..errors import EngineError
+from .encoding import HashEncoding, sh_encode
+from .occupancy import OccupancyGrid
+
+
+@dataclass
+class NerfConfig:
+    """Everything needed to rebuild the model (the checkpoint stores it as a plain dict)."""
+
+    aabb: list = field(default_factory=lambda: [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5])  # xmin ymin zmin xmax ymax zmax
+    n_levels: int = 8
+    n_features: int = 4
+    log2_table_size: int = 17
+    base_resolution: int = 16
+    finest_resolution: int = 512
+    density_hidden: int = 64
+    geo_feat_dim: int = 15  # the density MLP outputs 1 + geo_feat_dim values, all fed to the colour MLP
+    color_hidden: int = 64
+    color_layers: int = 2
+    sh_degree: int = 4
+    occ_resolution: int = 128
+    occ_threshold: float = 0.01  # a cell is occupied when its opacity over one render step exceeds this
+    steps_per_diagonal: int = 512  # render step = aabb diagonal / this
+    background: list = field(default_factory=lambda: [1.0, 1.0, 1.0])  # default background (RGBA data: white)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "NerfConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise EngineError(f"unknown NeRF config keys {sorted(unknown)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @property
+    def render_step(self) -> float:
+        lo, hi = self.aabb[:3], self.aabb[3:]
+        return math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))) / self.steps_per_diagonal
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp with a gradient clamped for stability (instant-ngp / torch-ngp's trunc_exp)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(max=15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return _TruncExp.apply(x)
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    """'auto' → cuda when available, else cpu; 'cuda' without CUDA is an EngineError."""
+    if name in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise EngineError("--device cuda: this torch has no CUDA device (torch.cuda.is_available() is False)")
+    if name not in ("cpu", "cuda"):
+        raise EngineError(f"unknown device {name!r}: use auto, cpu or cuda")
+    return torch.device(name)
+
+
+def device_summary() -> dict:
+    """The torch build and the devices it sees (the worker's hello and its `info` op)."""
+    return {
+        "torch": torch.__version__,
+        "cuda": torch.cuda.is_available(),
+        "devices": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())],
+    }
+
+
+def _mlp(n_in: int, n_hidden: int, n_layers: int, n_out: int) -> torch.nn.Sequential:
+    layers, d = [], n_in
+    for _ in range(n_layers):
+        layers += [torch.nn.Linear(d, n_hidden, bias=False), torch.nn.ReLU(inplace=True)]
+        d = n_hidden
+    layers.append(torch.nn.Linear(d, n_out, bias=False))
+    return torch.nn.Sequential(*layers)
+
+
+class NerfModel(torch.nn.Module):
+    def __init__(self, config: NerfConfig | None = None):
+        super().__init__()
+        self.config = config = config or NerfConfig()
+        self.register_buffer("aabb", torch.tensor(config.aabb, dtype=torch.float32).reshape(2, 3))
+        self.encoding = HashEncoding(config.n_levels, config.n_features, config.log2_table_size,
+                                     config.base_resolution, config.finest_resolution)
+        self.density_net = _mlp(self.encoding.out_dim, config.density_hidden, 1, 1 + config.geo_feat_dim)
+        self.color_net = _mlp(1 + config.geo_feat_dim + config.sh_degree**2, config.color_hidden, config.color_layers, 3)
+        self.occupancy = OccupancyGrid(self.aabb, config.occ_resolution)
+
+    @property
+    def device(self) -> torch.device:
+        return self.aabb.device
+
+    def _apply(self, fn, *args, **kwargs):
+        # .to(), .cuda(), .cpu() all come here: the occupancy grid (not a Module) follows the weights.
+        out = super()._apply(fn, *args, **kwargs)
+        if "occupancy" in self.__dict__:
+            self.occupancy.to(self.aabb.device)
+        return out
+
+    def normalize(self, points: torch.Tensor) -> torch.Tensor:
+        return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
+
+    def encode(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Hash encoding (N, L*F) of world points, whether each is inside the aabb, and the normalised points."""
+        x = self.normalize(points)
+        inside = ((x >= 0) & (x <= 1)).all(dim=-1)
+        return self.encoding(x), inside, x
+
+    def features_from_encoding(self, encoded: torch.Tensor, inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.density_net(encoded)
+        sigma = trunc_exp(h[:, 0] - 1.0) * inside
+        return sigma, h
+
+    def density_and_features(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density (N,) >= 0 and the geometry features (N, 1+geo_feat_dim) the colour MLP reads."""
+        encoded, inside, _ = self.encode(points)
+        return self.features_from_encoding(encoded, inside)
+
+    def color(self, geo: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return torch.sigmoid(self.color_net(torch.cat([geo, sh_encode(d, self.config.sh_degree)], dim=-1)))
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """Volume density (N,) >= 0 at world points (N, 3); 0 outside the aabb."""
+        return self.density_and_features(points)[0]
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(density (N,), rgb (N, 3) in [0, 1]) at world points seen along directions dirs."""
+        sigma, geo = self.density_and_features(points)
+        return sigma, self.color(geo, dirs)
+
+    def forward(self, points, dirs):
+        return self.query(points, dirs)

@@ -1,0 +1,299 @@
+"""Training loop: random rays from all images, random backgrounds, occupancy-skipped rendering, Adam.
+
+`Trainer(model, dataset, options)` then `trainer.train()`; or call `trainer.step()`
+yourself. Budget: `options.max_seconds` (training time: the time spent in
+callbacks such as validation is not counted) and/or `options.steps`.
+
+What makes it fast on CPU (BENCHMARKS.md has the figures):
+- the fused hash-encoding kernels (encoding_kernels.py) and a lazy (sparse) Adam (adam_kernels.py) on
+  the hash table that touches only the rows that received a gradient;
+- a constant number of *samples* per step (the ray batch adapts), as nerfacc does;
+- the occupancy grid and early ray termination (renderer.py), so only samples
+  near the visible surfaces get a gradient.
+
+Random backgrounds: every ray composites prediction and target on the same
+random colour, so the background is not baked into the density.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .. import backend
+from . import adam_kernels
+from ..errors import EngineError
+from .checkpoint import load_nerf, read_checkpoint, save_nerf
+from .dataset import NerfDataset, load_dataset
+from .model import NerfConfig, NerfModel, resolve_device
+from .renderer import render_rays
+
+
+@dataclass
+class TrainOptions:
+    max_seconds: float | None = None
+    steps: int | None = None
+    lr: float = 1e-2
+    lr_final_factor: float = 0.05  # lr decays exponentially to lr * this at the end of the budget
+    warmup_steps: int = 50
+    target_samples: int = 1 << 15  # samples with gradients per step; the ray batch adapts to it
+    init_rays: int = 1024
+    max_rays: int = 1 << 14
+    occ_update_every: int = 16
+    occ_warmup_steps: int = 128  # every cell is re-evaluated during these steps
+    occ_fraction: float = 1 / 16  # afterwards: this fraction uniformly + as many among occupied cells
+    random_background: bool = True
+    pixel_jitter: bool = True  # a random point in the pixel (the images are box-filtered)
+    checkpoint_path: str | None = None
+    checkpoint_every_s: float = 120.0
+    seed: int = 0
+
+
+class Trainer:
+    def __init__(self, model: NerfModel, dataset: NerfDataset, options: TrainOptions | None = None):
+        if dataset.images is None or len(dataset) == 0:
+            raise ValueError("the dataset has no images")
+        self.model = model
+        self.opt = options or TrainOptions()
+        dev = model.device
+        self.device = dev
+        torch.manual_seed(self.opt.seed)
+        n, h, w = dataset.images.shape[:3]
+        self.n_images, self.h, self.w = n, h, w
+        self.pixels = torch.from_numpy(dataset.images.reshape(-1, 4)).to(dev)
+        self.c2w = torch.tensor(np.stack([c.c2w[:3, :4] for c in dataset.cameras]), dtype=torch.float32, device=dev)
+        self.intr = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in dataset.cameras], dtype=torch.float32, device=dev)
+        enc = model.encoding
+        self.lazy_table = backend.use_kernels(dev)  # the table's lazy Adam needs the fused encoding kernels
+        enc.fused_grad = self.lazy_table
+        mlp_params = list(model.density_net.parameters()) + list(model.color_net.parameters())
+        params = mlp_params if self.lazy_table else [enc.table] + mlp_params
+        self.optimizer = torch.optim.Adam(params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15)
+        if self.lazy_table:
+            self.table_m = torch.zeros_like(enc.table.detach())
+            self.table_v = torch.zeros_like(enc.table.detach())
+        self.step_count = 0
+        self.elapsed = 0.0  # training seconds (callbacks excluded)
+        # First batch: as if every ray took half a diagonal of samples (the grid starts all occupied).
+        self.n_rays = max(64, min(self.opt.init_rays, 2 * self.opt.target_samples // model.config.steps_per_diagonal))
+        self.last = {}
+
+    # --- pieces of a step ---------------------------------------------------------------------
+    def sample_rays(self, n_rays: int):
+        dev = self.device
+        idx = torch.randint(0, self.pixels.shape[0], (n_rays,), device=dev)
+        img = idx // (self.h * self.w)
+        pix = idx % (self.h * self.w)
+        j = (pix // self.w).float()
+        i = (pix % self.w).float()
+        if self.opt.pixel_jitter:
+            i = i + torch.rand(n_rays, device=dev)
+            j = j + torch.rand(n_rays, device=dev)
+        else:
+            i, j = i + 0.5, j + 0.5
+        fx, fy, cx, cy = self.intr[img].unbind(-1)
+        d_cam = torch.stack([(i - cx) / fx, -(j - cy) / fy, -torch.ones_like(i)], dim=-1)
+        c2w = self.c2w[img]
+        d = (c2w[:, :, :3] @ d_cam[:, :, None])[:, :, 0]
+        d = d / d.norm(dim=-1, keepdim=True)
+        return c2w[:, :, 3].contiguous(), d.contiguous(), self.pixels[idx]
+
+    def progress_fraction(self) -> float:
+        p = 0.0
+        if self.opt.steps:
+            p = max(p, self.step_count / self.opt.steps)
+        if self.opt.max_seconds:
+            p = max(p, self.elapsed / self.opt.max_seconds)
+        return min(p, 1.0)
+
+    def learning_rate(self) -> float:
+        warm = min(1.0, (self.step_count + 1) / max(1, self.opt.warmup_steps))
+        return self.opt.lr * warm * self.opt.lr_final_factor ** self.progress_fraction()
+
+    def update_occupancy(self) -> None:
+        m = self.model
+        if self.step_count % self.opt.occ_update_every:
+            return
+        step = m.config.render_step
+        was = m.training
+        m.eval()
+        if self.step_count < self.opt.occ_warmup_steps:
+            # Every cell, but through blocks of 2^3 cells for the first half of the warmup (8x cheaper).
+            block = 2 if self.step_count < self.opt.occ_warmup_steps // 2 else 1
+            m.occupancy.update(m.density, step, m.config.occ_threshold, block=block)
+        else:
+            k = int(m.occupancy.resolution**3 * self.opt.occ_fraction)
+            m.occupancy.update(m.density, step, m.config.occ_threshold, n_uniform=k, n_occupied=k)
+        m.train(was)
+
+    def _optimizer_step(self, lr: float) -> None:
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr
+        self.optimizer.step()
+        if self.lazy_table:
+            enc = self.model.encoding
+            t = self.step_count + 1
+            adam_kernels.sparse_adam(enc.table.detach().numpy(), enc.grad_buffer().numpy(), self.table_m.numpy(),
+                         self.table_v.numpy(), enc.touched_rows(), lr, 0.9, 0.99, 1e-15, 1 - 0.9**t, 1 - 0.99**t)
+
+    def step(self) -> dict:
+        """One optimisation step; returns loss, psnr (of the batch), rays and samples."""
+        t_start = time.perf_counter()
+        self.model.encoding.fused_grad = self.lazy_table
+        self.update_occupancy()
+        m = self.model
+        m.train()
+        o, d, target = self.sample_rays(self.n_rays)
+        if self.opt.random_background:
+            bg = torch.rand(self.n_rays, 3, device=self.device)
+        else:
+            bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
+        tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
+        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True)
+        loss = torch.mean((out["rgb"] - tgt) ** 2)
+        self.optimizer.zero_grad(set_to_none=True)
+        n_samples = out["n_color_samples"]
+        if n_samples:
+            loss.backward()
+            self._optimizer_step(self.learning_rate())
+        # Keep the number of samples per step near the target (nerfacc's dynamic batch).
+        per_ray = max(n_samples / self.n_rays, 1e-3)
+        den_per_ray = max(out["n_density_samples"] / self.n_rays, 1e-3)
+        want = min(self.opt.target_samples / per_ray, 4 * self.opt.target_samples / den_per_ray)
+        self.n_rays = int(min(self.opt.max_rays, 2 * self.n_rays, max(64, 0.7 * self.n_rays + 0.3 * want)))
+        self.step_count += 1
+        self.elapsed += time.perf_counter() - t_start
+        lv = float(loss.detach())
+        self.last = {"loss": lv, "psnr": -10 * math.log10(max(lv, 1e-10)), "rays": o.shape[0],
+                     "samples_per_ray": per_ray, "density_samples_per_ray": den_per_ray}
+        return self.last
+
+    def done(self) -> bool:
+        if self.opt.steps is not None and self.step_count >= self.opt.steps:
+            return True
+        if self.opt.max_seconds is not None and self.elapsed >= self.opt.max_seconds:
+            return True
+        return False
+
+    # --- resume ------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        s = {"step": self.step_count, "elapsed": self.elapsed, "n_rays": self.n_rays,
+             "optimizer": self.optimizer.state_dict()}
+        if self.lazy_table:
+            s["table_m"], s["table_v"] = self.table_m.clone(), self.table_v.clone()
+        return s
+
+    def load_state_dict(self, s: dict) -> None:
+        self.step_count = int(s["step"])
+        self.elapsed = float(s.get("elapsed", 0.0))
+        self.n_rays = int(s.get("n_rays", self.n_rays))
+        try:
+            self.optimizer.load_state_dict(s["optimizer"])
+        except (ValueError, KeyError):
+            pass  # a checkpoint from the other optimizer layout: restart the moments
+        if self.lazy_table and "table_m" in s:
+            self.table_m.copy_(s["table_m"])
+            self.table_v.copy_(s["table_v"])
+
+    def save(self, path) -> None:
+        save_nerf(self.model, path, trainer_state=self.state_dict())
+
+    # --- the loop ----------------------------------------------------------------------------
+    def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None,
+              should_stop: Callable[[], bool] | None = None) -> dict:
+        """Train until the budget is spent. `callback(trainer)` runs after every step (its time is not
+        counted); `should_stop()` returning True cancels (a checkpoint is still written)."""
+        if self.opt.steps is None and self.opt.max_seconds is None:
+            raise ValueError("give a step count or a time budget")
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            if self.opt.steps is not None:
+                bar = tqdm(total=self.opt.steps, initial=self.step_count, unit="step", dynamic_ncols=True)
+            else:
+                bar = tqdm(total=round(self.opt.max_seconds), unit="s", dynamic_ncols=True,
+                           bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt}s [{elapsed}<{remaining}{postfix}]")
+        last_ckpt = time.perf_counter()
+        try:
+            while not self.done():
+                info = self.step()
+                if bar is not None:
+                    if self.opt.steps is not None:
+                        bar.update(1)
+                    else:
+                        bar.n = min(self.elapsed, self.opt.max_seconds)
+                        bar.refresh()
+                    if self.step_count % 10 == 0:
+                        bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}",
+                                        rays=info["rays"], spr=f"{info['samples_per_ray']:.1f}", refresh=False)
+                if callback is not None:
+                    callback(self)
+                if self.opt.checkpoint_path and time.perf_counter() - last_ckpt > self.opt.checkpoint_every_s:
+                    self.save(self.opt.checkpoint_path)
+                    last_ckpt = time.perf_counter()
+                if should_stop is not None and should_stop():
+                    break
+        finally:
+            if bar is not None:
+                bar.close()
+            self.model.encoding.fused_grad = False  # back to ordinary .grad for whoever uses the model next
+            if self.opt.checkpoint_path:
+                self.save(self.opt.checkpoint_path)
+        return {"steps": self.step_count, "seconds": self.elapsed, **self.last}
+
+
+DEFAULT_SECONDS = 300.0
+
+
+def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
+                 checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
+                 seed: int = 0) -> dict:
+    """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
+
+    `seed` seeds the initial weights as well as the trainer's sampling, so that a run of a fixed
+    number of steps on the CPU repeats on the same machine (a time budget cannot: it depends on
+    the machine's speed).
+    """
+    dev = resolve_device(device)
+    if steps is not None and steps < 1:
+        raise EngineError(f"--steps must be positive, got {steps}")
+    if max_seconds is not None and max_seconds <= 0:
+        raise EngineError(f"--max-seconds must be positive, got {max_seconds}")
+    if steps is None and max_seconds is None:
+        max_seconds = DEFAULT_SECONDS
+    ds = load_dataset(data, downscale=downscale)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise EngineError(f"--out {out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / "nerf.ckpt"
+    state = None
+    if resume and ckpt.exists():
+        state = read_checkpoint(ckpt).get("trainer")
+        model = load_nerf(ckpt, device=dev).train()
+    else:
+        cfg = NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)])
+        for k, v in (config_overrides or {}).items():
+            setattr(cfg, k, v)
+        torch.manual_seed(seed)
+        model = NerfModel(cfg).to(dev)
+    opts = TrainOptions(max_seconds=max_seconds, steps=steps, checkpoint_path=str(ckpt), checkpoint_every_s=checkpoint_every,
+                        seed=seed)
+    trainer = Trainer(model, ds, opts)
+    if state:
+        trainer.load_state_dict(state)
+        trainer.elapsed = 0.0  # --max-seconds counts this run
+    t0 = time.perf_counter()
+    summary = trainer.train(progress=progress, should_stop=should_stop)
+    summary.update({"checkpoint": str(ckpt), "device": str(dev), "wall_seconds": time.perf_counter() - t0,
+                    "images": len(ds), "width": ds.width, "height": ds.height})
+    (out / "train.json").write_text(json.dumps(summary, indent=1))
+    return summary

@@ -1,0 +1,199 @@
+"""The requests the worker serves, one handler per op (registered with `registry.op`).
+
+Each handler turns plain params and numpy arrays into calls of the stage
+functions (the same ones the command line calls) and their results back into
+plain data: no stage logic here. Loaded NeRFs are cached by path and
+modification time; cages, embeddings and regions live in the worker session
+(session.py) under the keys Blender gave them, with what is built from them.
+
+    info                                  the worker's Python, torch and devices
+    load     checkpoint                   bounds and configuration of a NeRF
+    extract  checkpoint, threshold, ...   the surface mesh (vertices, faces, colors)
+    cage     vertices + faces [checkpoint, threshold, margin, ...]
+                                          the rest cage and the surface's embedding in it
+    solve    shared cage/embedding/regions, mode, transforms, answer
+                                          a pose: deformed cage vertices, or (answer
+                                          "surface") the deformed surface for the preview
+    render   checkpoint, camera, pose     one frame, solved and rendered in one go:
+             pose {"kind": "rest"} | {"kind": "cage"} + deformed_vertices (shared cage)
+                  | {"kind": "handles", mode, transforms, handle_names} (shared cage,
+                  embedding, regions)
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+
+from ..bend.posed import PosedRenderer
+from ..errors import EngineError
+from ..geometry.cage import build_cage, build_nerf_cage
+from ..geometry.deform import RegionDeformer, split_regions
+from ..geometry.embedding import Embedding, embed_points
+from ..geometry.extract import extract_nerf_mesh
+from ..nerf.camera import Camera
+from ..nerf.checkpoint import load_nerf
+from ..nerf.model import device_summary
+from .registry import Job, op
+from .session import SESSION
+
+_models: dict[tuple[str, str], tuple[float, object]] = {}
+
+
+def cached_model(path: str, device: str = "auto"):
+    """The NeRF at `path`, loaded once per (path, device) and reloaded when the file changes."""
+    try:
+        mtime = os.path.getmtime(path)
+    except (OSError, TypeError, ValueError):
+        raise EngineError(f"NeRF checkpoint {path} does not exist or cannot be read") from None
+    key = (os.path.abspath(path), device)
+    cached = _models.get(key)
+    if cached is None or cached[0] != mtime:
+        _models[key] = (mtime, load_nerf(path, device=device))
+    return _models[key][1]
+
+
+def _model(params: dict):
+    return cached_model(params.get("checkpoint"), params.get("device", "auto"))
+
+
+@op("info")
+def info(job: Job) -> dict:
+    return {"python": sys.executable, "pid": os.getpid(), **device_summary()}
+
+
+@op("load")
+def load(job: Job) -> dict:
+    """Read a checkpoint: its bounds and configuration, for placing it in the scene."""
+    model = cached_model(job.params["path"], job.params.get("device", "auto"))
+    return {
+        "aabb": [float(x) for x in model.aabb.reshape(-1).tolist()],
+        "config": model.config.to_dict(),
+        "device": str(model.device),
+    }
+
+
+@op("extract")
+def extract(job: Job) -> tuple[dict, dict]:
+    """The NeRF's surface: marching cubes of its density, floaters dropped, vertex colours."""
+    p = job.params
+    model = _model(p)
+    job.progress(0.05, "sampling the density grid")
+    res = extract_nerf_mesh(model, resolution=p.get("resolution"), threshold=p.get("threshold"),
+                            min_volume=p.get("min_volume"))
+    colors = res.colors if res.colors is not None else np.full((len(res.vertices), 3), 0.8)
+    summary = {"report": res.report(), "kept": len(res.kept), "dropped": res.dropped_count, "timings": res.timings}
+    return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32)}
+
+
+@op("cage")
+def cage(job: Job) -> tuple[dict, dict]:
+    """Build the cage around a surface mesh once, and embed the surface in it. With a checkpoint
+    the margin is widened where the NeRF's density is still soft (as the `cage` command does)."""
+    vertices = np.asarray(job.arrays["vertices"], dtype=np.float64)
+    faces = np.asarray(job.arrays["faces"], dtype=np.int64)
+    p = job.params
+    job.progress(0.05, "tetrahedralizing")
+    size = {"edge_length": p.get("edge_length"), "target_tets": p.get("target_tets")}
+    if p.get("checkpoint"):
+        built = build_nerf_cage(vertices, faces, _model(p), p.get("margin"), p.get("threshold"), **size,
+                                log=lambda line: print(line, file=sys.stderr))
+    else:
+        built = build_cage(vertices, faces, p.get("margin"), **size)
+    job.progress(0.9, "embedding the surface")
+    embedding = embed_points(vertices, built.vertices, built.tets)
+    result = {"n_vertices": int(len(built.vertices)), "n_tets": int(len(built.tets)), "margin": built.margin,
+              "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings}
+    return result, {"vertices": built.vertices, "tets": built.tets, "tet_ids": embedding.tet_ids,
+                    "weights": embedding.weights}
+
+
+def _embedding(cage_arrays: dict, embedding_arrays: dict) -> Embedding:
+    tets, tet_ids = cage_arrays["tets"], embedding_arrays["tet_ids"]
+    if len(tet_ids) != len(embedding_arrays["weights"]):
+        raise EngineError(f"the embedding has {len(tet_ids)} tets for {len(embedding_arrays['weights'])} weight rows")
+    if len(tet_ids) and tet_ids.max() >= len(tets):
+        raise EngineError(f"the embedding names tets outside the cage's 0..{len(tets) - 1}: rebuild the cage")
+    return Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=embedding_arrays["weights"], n_outside=0)
+
+
+def _handle_pose(job: Job, pose: dict) -> tuple[str, dict, np.ndarray, dict]:
+    """Solve the handles' pose: (cage key, cage arrays, deformed cage vertices, stats)."""
+    shared = SESSION.shared(job, "cage", "embedding", "regions")
+    (cage_key, cage_arrays), (emb_key, emb_arrays), (reg_key, reg) = shared["cage"], shared["embedding"], shared["regions"]
+    mode = pose.get("mode", "ARAP")
+    names = list(pose.get("handle_names") or [])
+
+    def build():
+        job.progress(0.05, f"{mode} precomputation")
+        regions = split_regions(reg["handle_index"], reg["handle_counts"])
+        return RegionDeformer(cage_arrays["vertices"], cage_arrays["tets"], _embedding(cage_arrays, emb_arrays),
+                              regions, reg["pin_index"], names or None, mode)
+
+    new = ("deformer", cage_key, emb_key, reg_key, mode, tuple(names))
+    fresh = not SESSION.has("deformer", new)
+    deformer = SESSION.derived("deformer", new, build, keep=2)
+    transforms = [np.asarray(t, dtype=np.float64) for t in pose.get("transforms", [])]
+    deformed, stats = deformer.solve(transforms)
+    if fresh:
+        stats["precompute_s"] = deformer.precompute_s
+    return cage_key, cage_arrays, deformed, stats
+
+
+@op("solve")
+def solve(job: Job) -> tuple[dict, dict]:
+    """A pose of the handles: the deformed cage vertices, or with answer "surface" the deformed
+    extracted mesh (float32, its vertex order), which is all the live preview draws."""
+    _cage_key, _cage, deformed, stats = _handle_pose(job, job.params)
+    if job.params.get("answer") == "surface":
+        _key, emb = SESSION.shared(job, "embedding")["embedding"]
+        surface = _embedding(_cage, emb).apply(deformed)
+        return stats, {"surface": surface.astype(np.float32)}
+    return stats, {"deformed_vertices": np.asarray(deformed, dtype=np.float64)}
+
+
+def _camera(cam: dict) -> Camera:
+    try:
+        return Camera(c2w=np.asarray(cam["camera_to_world"], dtype=np.float64).reshape(4, 4), fx=float(cam["fx"]),
+                      fy=float(cam["fy"]), cx=float(cam["cx"]), cy=float(cam["cy"]), width=int(cam["width"]),
+                      height=int(cam["height"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise EngineError(f"bad camera in the render request: {exc}") from None
+
+
+@op("render")
+def render(job: Job) -> tuple[dict, dict]:
+    """One frame from a pinhole camera in the NeRF's frame, at the pose given, solved here.
+
+    Returns arrays `rgba` (H,W,4) float32 straight alpha, rows top-down, and `depth`
+    (H,W) float32: expected distance along each unit ray, NeRF units, 0 where empty.
+    """
+    params = job.params
+    model = _model(params)
+    camera = _camera(params["camera"])
+    pose = params.get("pose") or {"kind": "rest"}
+    kind, stats = pose.get("kind"), {}
+    if kind == "rest":
+        renderer, deformed = PosedRenderer(model), None
+    elif kind in ("cage", "handles"):
+        if kind == "handles":
+            cage_key, cage_arrays, deformed, stats = _handle_pose(job, pose)
+        else:
+            cage_key, cage_arrays = SESSION.shared(job, "cage")["cage"]
+            if "deformed_vertices" not in job.arrays:
+                raise EngineError("a cage pose needs its deformed_vertices")
+            deformed = np.asarray(job.arrays["deformed_vertices"], dtype=np.float64)
+            if deformed.shape != cage_arrays["vertices"].shape or not np.isfinite(deformed).all():
+                raise EngineError(f"deformed cage vertices must be finite and of the cage's shape "
+                                  f"{cage_arrays['vertices'].shape}, got {deformed.shape}")
+        renderer = SESSION.derived("renderer", (id(model), cage_key),
+                                   lambda: PosedRenderer(model, cage_arrays["vertices"], cage_arrays["tets"]), keep=2)
+    else:
+        raise EngineError(f"unknown pose kind {kind!r}: rest, cage or handles")
+    out = renderer.render(camera, deformed, progress=lambda done, total: job.progress(done / total, "rendering"))
+    stats.update({k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
+    if out["inversion"] is not None:
+        stats.update(inverted_tets=out["inversion"].n_inverted, degenerate_tets=out["inversion"].n_degenerate)
+    return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}

@@ -1,0 +1,163 @@
+"""The engine worker: a process Blender starts on a Python that has torch.
+
+    python -m blender_nerf_deform.engine.service.worker
+
+Reads requests from stdin and answers on stdout in the format of
+`protocol.py`; everything the engine prints (tqdm, warnings) goes to stderr,
+which the add-on forwards to Blender's console. One request runs at a time;
+a cancel for the running request stops it at its next progress report.
+
+Messages, client → worker:
+    {"type": "request", "id": n, "op": "<op>", "params": {...}} + arrays
+    {"type": "cancel", "id": n}
+    {"type": "shutdown"}
+worker → client:
+    {"type": "hello", "python": ..., "torch": ..., "cuda": bool, "ops": [...]}   once, at start
+    {"type": "fatal", "message": ...}                                         instead of hello, then exit
+    {"type": "progress", "id": n, "fraction": f, "message": ...}
+    {"type": "result", "id": n, "result": {...}} + arrays
+    {"type": "error", "id": n, "kind": "input" | "cancelled" | "missing" | "internal", "message": ..., "traceback": ...}
+
+The worker session (session.py): what Blender gave it (rest cages, surface
+embeddings, handle regions) is kept under content keys that the client
+chooses; a request names what it uses in params["shared"] = {slot: key} and
+carries the arrays of a slot ("<slot>.<name>") only the first time. A key the
+worker does not hold (a new worker, or one it dropped) fails the request with
+kind "missing" and the slots to send; the client sends them and retries.
+
+Why a process and not a thread in Blender: DESIGN.md ("Two halves").
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import queue
+import sys
+import threading
+import traceback
+from typing import TYPE_CHECKING, BinaryIO
+
+from ..errors import EngineError
+from .protocol import ProtocolError, read_message, write_message
+from .registry import HANDLERS, Cancelled, Job, Missing
+
+if TYPE_CHECKING:
+    import numpy as np
+
+
+class Worker:
+    def __init__(self, inp: BinaryIO, out: BinaryIO):
+        self.inp = inp
+        self.out = out
+        self._send_lock = threading.Lock()
+        self._jobs: queue.Queue[Job | None] = queue.Queue()
+        self._current: Job | None = None
+        self._pending: dict[int, Job] = {}
+
+    def send(self, header: dict, arrays: dict[str, np.ndarray] | None = None) -> None:
+        with self._send_lock:
+            write_message(self.out, header, arrays)
+
+    def _read_requests(self) -> None:
+        """Reader thread: queues requests, applies cancels at once, ends on shutdown or EOF."""
+        try:
+            while (message := read_message(self.inp)) is not None:
+                header, arrays = message
+                kind = header.get("type")
+                if kind == "request":
+                    job = Job(self, header["id"], header.get("op"), header.get("params", {}), arrays)
+                    self._pending[job.id] = job
+                    self._jobs.put(job)
+                elif kind == "cancel":
+                    job = self._pending.get(header.get("id"))
+                    if job is not None:
+                        job.cancel_event.set()
+                elif kind == "shutdown":
+                    break
+        except ProtocolError as exc:
+            print(f"worker: {exc}; stopping", file=sys.stderr)
+        finally:
+            # Blender went away or asked us to stop: cancel what runs, then end.
+            for job in list(self._pending.values()):
+                job.cancel_event.set()
+            self._jobs.put(None)
+
+    def _run(self, job: Job) -> None:
+        handler = HANDLERS.get(job.op)
+        try:
+            if job.cancel_event.is_set():
+                raise Cancelled()
+            if handler is None:
+                raise EngineError(f"unknown request {job.op!r}; this worker knows {sorted(HANDLERS)}")
+            answer = handler(job)
+            result, arrays = answer if isinstance(answer, tuple) else (answer, {})
+            self.send({"type": "result", "id": job.id, "result": result}, arrays)
+        except Cancelled:
+            self.send({"type": "error", "id": job.id, "kind": "cancelled", "message": "cancelled"})
+        except Missing as exc:
+            self.send({"type": "error", "id": job.id, "kind": "missing", "message": str(exc), "missing": exc.slots})
+        except EngineError as exc:
+            self.send({"type": "error", "id": job.id, "kind": "input", "message": str(exc)})
+        except Exception as exc:  # a bug: keep the worker alive, give Blender the traceback
+            self.send(
+                {
+                    "type": "error",
+                    "id": job.id,
+                    "kind": "internal",
+                    "message": f"{type(exc).__name__}: {exc}",
+                    "traceback": traceback.format_exc(),
+                }
+            )
+        finally:
+            self._pending.pop(job.id, None)
+
+    def serve(self) -> int:
+        threading.Thread(target=self._read_requests, name="worker-reader", daemon=True).start()
+        while (job := self._jobs.get()) is not None:
+            self._run(job)
+        return 0
+
+
+def _protocol_streams() -> tuple[BinaryIO, BinaryIO]:
+    """Keep the real stdout for messages; send everything printed to stderr instead."""
+    out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    sys.stdout = sys.stderr
+    return sys.stdin.buffer, out
+
+
+def main() -> int:
+    inp, out = _protocol_streams()
+    try:
+        import numpy  # noqa: F401
+
+        from ..nerf.model import device_summary  # imports torch
+    except ImportError as exc:
+        write_message(
+            out,
+            {
+                "type": "fatal",
+                "message": f"the worker Python {sys.executable} cannot import {exc.name} ({exc}); "
+                "set NeRF Deform's Worker Python preference to a Python 3.11 with the engine's "
+                "requirements (torch, numpy, ...) installed",
+            },
+        )
+        return 3
+    from . import ops  # noqa: F401  (registers the engine's ops)
+
+    worker = Worker(inp, out)
+    worker.send(
+        {
+            "type": "hello",
+            "python": sys.executable,
+            "python_version": platform.python_version(),
+            **device_summary(),
+            "ops": sorted(HANDLERS),
+        }
+    )
+    return worker.serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
