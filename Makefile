@@ -23,7 +23,7 @@ $(STAMP): requirements.txt
 	@touch $(STAMP)
 
 test: setup
-	$(VPY) -m pytest addon_tests $(PYTEST_ARGS)
+	$(VPY) -m pytest tests $(PYTEST_ARGS)
 
 demo: setup
 	$(VPY) tools/demo.py

@@ -33,6 +33,7 @@ from ..geometry.cage import build_cage, build_nerf_cage
 from ..geometry.deform import RegionDeformer, split_regions
 from ..geometry.embedding import Embedding, embed_points
 from ..geometry.extract import extract_nerf_mesh
+from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
 from ..nerf.checkpoint import load_nerf
 from ..nerf.model import device_summary
@@ -119,38 +120,39 @@ def _embedding(cage_arrays: dict, embedding_arrays: dict) -> Embedding:
     return Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=embedding_arrays["weights"], n_outside=0)
 
 
-def _handle_pose(job: Job, pose: dict) -> tuple[str, dict, np.ndarray, dict]:
-    """Solve the handles' pose: (cage key, cage arrays, deformed cage vertices, stats)."""
+def _handle_pose(job: Job, pose: dict) -> tuple[str, dict, tuple, np.ndarray, dict]:
+    """Solve the handles' pose: (cage key, cage arrays, (cage key, embedding key), deformed cage vertices, stats)."""
     shared = SESSION.shared(job, "cage", "embedding", "regions")
     (cage_key, cage_arrays), (emb_key, emb_arrays), (reg_key, reg) = shared["cage"], shared["embedding"], shared["regions"]
+    embedding = SESSION.derived("embedding", (cage_key, emb_key), lambda: _embedding(cage_arrays, emb_arrays))
     mode = pose.get("mode", "ARAP")
     names = list(pose.get("handle_names") or [])
 
     def build():
         job.progress(0.05, f"{mode} precomputation")
         regions = split_regions(reg["handle_index"], reg["handle_counts"])
-        return RegionDeformer(cage_arrays["vertices"], cage_arrays["tets"], _embedding(cage_arrays, emb_arrays),
-                              regions, reg["pin_index"], names or None, mode)
+        return RegionDeformer(cage_arrays["vertices"], cage_arrays["tets"], embedding, regions, reg["pin_index"],
+                              names or None, mode)
 
-    new = ("deformer", cage_key, emb_key, reg_key, mode, tuple(names))
-    fresh = not SESSION.has("deformer", new)
-    deformer = SESSION.derived("deformer", new, build, keep=2)
+    key = (cage_key, emb_key, reg_key, mode, tuple(names))
+    fresh = not SESSION.has("deformer", key)
+    deformer = SESSION.derived("deformer", key, build, keep=2)
     transforms = [np.asarray(t, dtype=np.float64) for t in pose.get("transforms", [])]
     deformed, stats = deformer.solve(transforms)
     if fresh:
         stats["precompute_s"] = deformer.precompute_s
-    return cage_key, cage_arrays, deformed, stats
+    return cage_key, cage_arrays, (cage_key, emb_key), deformed, stats
 
 
 @op("solve")
 def solve(job: Job) -> tuple[dict, dict]:
     """A pose of the handles: the deformed cage vertices, or with answer "surface" the deformed
     extracted mesh (float32, its vertex order), which is all the live preview draws."""
-    _cage_key, _cage, deformed, stats = _handle_pose(job, job.params)
+    _cage_key, _cage, embedding_key, deformed, stats = _handle_pose(job, job.params)
     if job.params.get("answer") == "surface":
-        _key, emb = SESSION.shared(job, "embedding")["embedding"]
-        surface = _embedding(_cage, emb).apply(deformed)
-        return stats, {"surface": surface.astype(np.float32)}
+        embedding = SESSION.derived("embedding", embedding_key, None)
+        surface = SESSION.derived("surface map", embedding_key, lambda: SurfaceMap(embedding, len(deformed)), keep=2)
+        return stats, {"surface": surface.apply(deformed).astype(np.float32)}
     return stats, {"deformed_vertices": np.asarray(deformed, dtype=np.float64)}
 
 
@@ -179,7 +181,7 @@ def render(job: Job) -> tuple[dict, dict]:
         renderer, deformed = PosedRenderer(model), None
     elif kind in ("cage", "handles"):
         if kind == "handles":
-            cage_key, cage_arrays, deformed, stats = _handle_pose(job, pose)
+            cage_key, cage_arrays, _surface, deformed, stats = _handle_pose(job, pose)
         else:
             cage_key, cage_arrays = SESSION.shared(job, "cage")["cage"]
             if "deformed_vertices" not in job.arrays:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from dataset_fixtures import PROCEDURAL_RESOLUTION, PROCEDURAL_TEST_VIEWS, PROCEDURAL_VIEWS, run_tool
+from fixtures.scenes import PROCEDURAL_RESOLUTION, PROCEDURAL_TEST_VIEWS, PROCEDURAL_VIEWS, run_tool
 
 MARKER = (0.45, -0.3, 0.35)  # off the optical axis of every camera (they look at the origin)
 MARKER_RADIUS = 0.07

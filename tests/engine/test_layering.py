@@ -4,7 +4,7 @@ from pathlib import Path
 
 from tools.check_layering import violations
 
-from conftest import REPO
+from fixtures import REPO
 
 
 def test_project_respects_layering():
@@ -107,3 +107,18 @@ def test_checker_follows_an_import_through_the_packages_above_it(tmp_path):
     _write(root, "addon/ops.py", "from ..engine.geometry.embedding import np\n")
     (problem,) = violations(root)
     assert "reaches torch" in problem and "addon/ops.py:1" in problem
+
+
+def test_engine_tests_never_import_blender():
+    """The engine half of the suite runs without Blender: no test module there imports bpy."""
+    import ast
+
+    from tools.check_layering import BLENDER_MODULES
+
+    found = []
+    for path in sorted((REPO / "tests" / "engine").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
+            found += [f"{path.name}:{node.lineno} {n}" for n in names if n.split(".")[0] in BLENDER_MODULES]
+    assert found == []

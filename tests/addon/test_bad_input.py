@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from test_bending import _psnr
+from fixtures import psnr as _psnr
 
 
 def _camera(bpy, location, target=(0.0, 0.0, 0.0), size=32, angle_x=1.2):

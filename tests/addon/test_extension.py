@@ -16,7 +16,7 @@ import pytest
 
 from tools.build_extension import find_blender_ext, stage
 
-from conftest import REPO
+from fixtures import REPO
 
 REPO_MODULE = "nerf_deform_test"
 EXT_MODULE = f"bl_ext.{REPO_MODULE}.blender_nerf_deform"

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO
+from fixtures import REPO
 from test_arap_handles import _nerf_with_built_cage
-from test_bending import _psnr
+from fixtures import psnr as _psnr
 from test_handles import _select_in_edit_mode
 
 SIZE = 48

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO
+from fixtures import REPO
 
 sys.path.insert(0, str(REPO))
 from tools.default_scene import REGIONS  # noqa: E402

@@ -12,7 +12,7 @@ from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
 from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
 
-from nerf_fixtures import look_at
+from fixtures.sphere_data import look_at
 
 
 def _model(seed=0):

@@ -3,7 +3,7 @@
 import subprocess
 import sys
 
-from conftest import REPO
+from fixtures import REPO
 
 COMMANDS = ("train", "eval", "render", "extract", "cage")
 

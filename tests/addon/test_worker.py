@@ -10,7 +10,7 @@ import pytest
 
 from blender_nerf_deform.engine.service.protocol import ProtocolError, read_message, write_message
 
-from conftest import REPO
+from fixtures import REPO
 
 
 def test_protocol_round_trip_keeps_arrays_exact():

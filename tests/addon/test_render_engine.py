@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO
+from fixtures import REPO
 
 
 def _engine_render(ckpt, cameras_json, out_dir):
@@ -186,7 +186,7 @@ def test_moving_the_cage_in_cage_modifiers_mode_renders_like_moving_the_camera_b
     camera.matrix_world = Matrix.Translation(-shift) @ camera.matrix_world
     moved_camera = render("moved_camera.png")
 
-    from test_bending import _psnr
+    from fixtures import psnr as _psnr
 
     assert _psnr(moved_content, moved_camera) >= 35  # 8-bit PNGs of a bent render vs a plain one
     assert _psnr(moved_content, still) < _psnr(moved_content, moved_camera) - 10

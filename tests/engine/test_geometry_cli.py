@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO
-from nerf_fixtures import RADIUS, write_sphere_dataset
+from fixtures import REPO
+from fixtures.sphere_data import RADIUS, write_sphere_dataset
 
 
 def _cli(*args, check=True):

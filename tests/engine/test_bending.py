@@ -85,7 +85,7 @@ def _cli(*args):
     import subprocess
     import sys
 
-    from conftest import REPO
+    from fixtures import REPO
 
     return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
                           capture_output=True, text=True)

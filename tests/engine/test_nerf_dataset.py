@@ -12,8 +12,8 @@ from PIL import Image
 from blender_nerf_deform.engine.nerf.dataset import load_dataset
 from blender_nerf_deform.engine.errors import EngineError
 
-from conftest import REPO, SHARED_DATASETS
-from nerf_fixtures import look_at, write_sphere_dataset
+from fixtures import REPO, SHARED_DATASETS
+from fixtures.sphere_data import look_at, write_sphere_dataset
 
 
 def _write(folder, meta, images=None, size=(8, 6), mode="RGBA"):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from blender_nerf_deform.engine.geometry.cage import box_cage
-from nerf_fixtures import RADIUS, look_at
+from fixtures.sphere_data import RADIUS, look_at
 
 
 def _psnr(a, b):
@@ -170,7 +170,7 @@ def _cli(*args):
     import subprocess
     import sys
 
-    from conftest import REPO
+    from fixtures import REPO
 
     return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
                           capture_output=True, text=True)
@@ -242,20 +242,27 @@ def test_the_cpu_kernels_and_the_torch_path_agree(model):
     a = 0.4 * np.clip(rest[:, 2], 0, None)  # twist the upper half
     posed = np.stack([np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1], np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1],
                       rest[:, 2] + 0.1], axis=1)
-    bend = CageBend(model, rest, tets)
     pts = torch.as_tensor(np.random.default_rng(1).uniform(-1.4, 1.4, (50000, 3)), dtype=torch.float32)
     dirs = torch.nn.functional.normalize(torch.as_tensor(np.random.default_rng(2).normal(size=(50000, 3)),
                                                          dtype=torch.float32), dim=1)
     results = []
     from blender_nerf_deform.engine import backend
 
-    for path in ("auto", "torch"):
+    for path in ("auto", "torch"):  # the whole bender on one path: its kernels and its point location
         with backend.forced(path):
-            assert bend.use_kernels == (path == "auto")
+            bend = CageBend(model, rest, tets)
+            assert bend.use_kernels == (path == "auto") and bend.rest.backend == ("numba" if path == "auto" else "torch")
             bend.set_deformed(posed)
             results.append((bend.occupancy.aabb, bend.occupancy.mask, *bend.sample_transform(pts, dirs)))
     (box_k, mask_k, p_k, d_k, keep_k), (box_t, mask_t, p_t, d_t, keep_t) = results
-    assert torch.equal(box_k, box_t) and torch.equal(mask_k, mask_t)
+    assert torch.equal(box_k, box_t)
+    # The NeRF grid's cell corners lie on this box cage's faces, where the two locators may pick
+    # different tets (measured: 8 of ~194,500 marked cells differ); both images are valid.
+    assert int((mask_k != mask_t).sum()) <= 1e-4 * int(mask_k.sum())
     assert mask_k.any() and keep_k.any() and not keep_k.all()
-    assert torch.allclose(p_k, p_t, atol=1e-5) and torch.allclose(d_k, d_t, atol=1e-5)
+    assert torch.allclose(p_k, p_t, atol=1e-5)  # the map is continuous across tet faces
+    # A view direction turns with its tet, which is discontinuous across faces: the two point
+    # locators (float32 torch, float64 numba) may pick either tet for a sample on a face.
+    turned = (d_k - d_t).abs().amax(dim=1) > 1e-5
+    assert int(turned.sum()) <= 5, int(turned.sum())
     assert (keep_k != keep_t).sum() <= 2  # a sample exactly on a cell face may round either way

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from nerf_fixtures import RADIUS
+from fixtures.sphere_data import RADIUS
 
 
 @pytest.mark.slow

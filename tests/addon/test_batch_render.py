@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO
+from fixtures import REPO
 
 # Every process starts like `blender -b`: user preferences read, extensions enabled.
 _PRELUDE = """

@@ -16,8 +16,8 @@ from blender_nerf_deform.engine.nerf.evaluate import evaluate, psnr
 from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
 
-from conftest import REPO
-from nerf_fixtures import write_sphere_dataset
+from fixtures import REPO
+from fixtures.sphere_data import write_sphere_dataset
 
 SMALL = {"log2_table_size": 14, "finest_resolution": 128, "occ_resolution": 32, "steps_per_diagonal": 256}
 

@@ -1,0 +1,42 @@
+"""Fixtures of the add-on's tests: real headless Blender (the `bpy` module), reset around every test.
+
+Every test in this folder starts and ends in Blender's factory settings (an empty scene), whether
+it asks for `blender` or not, as MolecularNodes' and other well-kept add-ons' suites do: no scene,
+handler or registered class leaks from one test into the next.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from fixtures.scenes import default_scene_blend, make_procedural_dataset, procedural_dataset  # noqa: F401
+
+
+@pytest.fixture(autouse=True)
+def blender():
+    """Factory settings before and after the test (automatic for every add-on test)."""
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    yield bpy
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+@pytest.fixture
+def addon(blender):
+    """The add-on registered by direct import, in factory settings; unregistered after."""
+    import blender_nerf_deform
+
+    blender_nerf_deform.register()
+    yield blender
+    blender_nerf_deform.unregister()
+
+
+@pytest.fixture(scope="session")
+def extension_zip(tmp_path_factory) -> Path:
+    """The extension zip built by tools/build_extension.py (validated by Blender's tool)."""
+    from tools.build_extension import build
+
+    return build(tmp_path_factory.mktemp("dist"))
