@@ -47,7 +47,11 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
         self._nerf = nerf
         # With the checkpoint and the extraction threshold the worker widens the margin where the
         # NeRF's density is still soft, as the `cage` command does (one stage function for both).
-        return "cage", {"checkpoint": checkpoint_path(nerf), "threshold": nerf.nerf_deform.threshold}, arrays
+        # (A NeRF object without a checkpoint, made by a script, gets the cage at the plain margin.)
+        params = {"threshold": nerf.nerf_deform.threshold}
+        if nerf.nerf_deform.checkpoint:
+            params["checkpoint"] = checkpoint_path(nerf)
+        return "cage", params, arrays
 
     def apply(self, context, result, arrays):
         nerf = self._nerf

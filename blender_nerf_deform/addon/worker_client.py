@@ -310,8 +310,9 @@ class WorkerClient:
         if header.get("type") != "error" or header.get("kind") != "missing" or request.resent or not request.send:
             return False
         op, params, arrays, shared = request.send
+        missing = set(header.get("missing") or (shared or {}))
         with self._lock:
-            self._given -= {(slot, key) for slot, (key, _load) in (shared or {}).items()}
+            self._given -= {(slot, key) for slot, (key, _load) in (shared or {}).items() if slot in missing}
         request.resent = True
         self._send_request(request, op, params, arrays, shared)
         return True

@@ -162,3 +162,104 @@ def test_render_cancelled_midway_stops_at_the_next_chunk_and_the_worker_lives_on
     assert progress and max(progress) < 1.0
     result, arrays = worker.call("render", request(24))  # the same worker renders the next request in full
     assert arrays["rgba"].shape == (24, 24, 4)
+
+
+def _box_session(loads):
+    """Shared content of a small box cage, its vertices embedded in it, one handle and a pin."""
+    from blender_nerf_deform.engine.geometry.cage import box_cage
+    from blender_nerf_deform.engine.geometry.embedding import embed_points
+    from blender_nerf_deform.engine.service.protocol import content_key
+
+    V, T = box_cage((3, 3, 3), (-1, -1, -1), (1, 1, 1))
+    emb = embed_points(V, V, T)
+    top, bottom = np.flatnonzero(V[:, 2] > 0.9), np.flatnonzero(V[:, 2] < -0.9)
+    regions = {"handle_index": top, "handle_counts": np.array([len(top)]), "pin_index": bottom}
+
+    def loader(slot, arrays):
+        def load():
+            loads.append(slot)
+            return arrays
+        return load
+
+    cage = {"vertices": V, "tets": T}
+    embedding = {"tet_ids": emb.tet_ids, "weights": emb.weights}
+    shared = {"cage": (content_key(V, T), loader("cage", cage)),
+              "embedding": (content_key(emb.tet_ids, emb.weights), loader("embedding", embedding)),
+              "regions": (content_key(*regions.values()), loader("regions", regions))}
+    return V, top, shared
+
+
+def _lift(dz):
+    m = np.eye(4)
+    m[2, 3] = dz
+    return m.tolist()
+
+
+def test_shared_content_travels_once_and_again_after_a_restart(worker):
+    """The worker session: cage, embedding and regions are sent with the first request that needs
+    them, named by key afterwards; a new worker process gets them again."""
+    loads = []
+    V, top, shared = _box_session(loads)
+    pose = {"mode": "ARAP", "transforms": [_lift(0.3)], "handle_names": ["Lift"]}
+    result, out = worker.call("solve", pose, shared=shared)
+    assert sorted(loads) == ["cage", "embedding", "regions"] and "precompute_s" in result
+    first_bytes = worker.sent[-1][1]
+    assert np.allclose(out["deformed_vertices"][top, 2], V[top, 2] + 0.3, atol=1e-6)
+
+    loads.clear()
+    result, out2 = worker.call("solve", {**pose, "transforms": [_lift(0.5)]}, shared=shared)
+    assert loads == [] and "precompute_s" not in result  # nothing re-sent, factorization reused
+    assert worker.sent[-1][1] < 2000 < first_bytes
+    assert np.allclose(out2["deformed_vertices"][top, 2], V[top, 2] + 0.5, atol=1e-6)
+    # The preview's answer: the embedded surface itself (here: the cage's own vertices).
+    _result, surf = worker.call("solve", {**pose, "answer": "surface"}, shared=shared)
+    assert surf["surface"].dtype == np.float32 and np.allclose(surf["surface"], out["deformed_vertices"], atol=1e-5)
+
+    worker.stop()
+    worker.call("solve", pose, shared=shared)  # a fresh process: it holds nothing
+    assert sorted(loads) == ["cage", "embedding", "regions"]
+
+
+def test_a_worker_that_dropped_shared_content_gets_it_again(worker):
+    """The client believes the worker holds a cage it does not (it dropped it, or another client
+    sent it): the worker answers "missing" and the client sends it with the same request."""
+    loads = []
+    _V, _top, shared = _box_session(loads)
+    pose = {"mode": "AFFINE", "transforms": [_lift(0.2)], "handle_names": ["Lift"]}
+    worker.ensure_started()
+    worker._given.add(("cage", shared["cage"][0]))  # never sent to this worker
+    result, out = worker.call("solve", pose, shared=shared)
+    assert sorted(loads) == ["cage", "embedding", "regions"]  # the cage on the second try
+    assert [op for op, _n in worker.sent] == ["solve", "solve"]
+    async_done = []
+    worker._given.add(("regions", "not-sent"))
+    worker.submit("solve", pose, shared={**shared, "regions": ("not-sent", shared["regions"][1])},
+                  on_done=lambda r, a: async_done.append(a), on_error=lambda e: async_done.append(e))
+    import time
+
+    deadline = time.time() + 60
+    while not async_done and time.time() < deadline:
+        worker.drain()
+        time.sleep(0.01)
+    assert isinstance(async_done[0], dict) and "deformed_vertices" in async_done[0]
+
+
+def test_bad_shared_content_is_a_clear_error_and_the_worker_lives_on(worker):
+    from blender_nerf_deform.addon.worker_client import WorkerError
+
+    loads = []
+    V, _top, shared = _box_session(loads)
+    bad = V.copy()
+    bad[3] = np.nan
+    cage_key, _load = shared["cage"]
+    shared = {**shared, "cage": ("nan-cage", lambda: {"vertices": bad, "tets": _box_tets()})}
+    with pytest.raises(WorkerError, match="cage vertices must be finite") as error:
+        worker.call("solve", {"mode": "ARAP", "transforms": [_lift(0.1)]}, shared=shared)
+    assert error.value.kind == "input"
+    assert worker.call("info")[0]["pid"] == worker._proc.pid
+
+
+def _box_tets():
+    from blender_nerf_deform.engine.geometry.cage import box_cage
+
+    return box_cage((3, 3, 3), (-1, -1, -1), (1, 1, 1))[1]

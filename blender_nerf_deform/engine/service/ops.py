@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import NamedTuple
 
 import numpy as np
 
@@ -120,8 +121,17 @@ def _embedding(cage_arrays: dict, embedding_arrays: dict) -> Embedding:
     return Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=embedding_arrays["weights"], n_outside=0)
 
 
-def _handle_pose(job: Job, pose: dict) -> tuple[str, dict, tuple, np.ndarray, dict]:
-    """Solve the handles' pose: (cage key, cage arrays, (cage key, embedding key), deformed cage vertices, stats)."""
+class HandlePose(NamedTuple):
+    cage_key: str
+    cage: dict  # the rest cage's arrays
+    embedding_key: tuple  # (cage key, embedding key)
+    embedding: Embedding
+    deformed: np.ndarray  # the cage's vertices at this pose
+    stats: dict
+
+
+def _handle_pose(job: Job, pose: dict) -> HandlePose:
+    """Solve the handles' pose with the shared cage, embedding and regions the request names."""
     shared = SESSION.shared(job, "cage", "embedding", "regions")
     (cage_key, cage_arrays), (emb_key, emb_arrays), (reg_key, reg) = shared["cage"], shared["embedding"], shared["regions"]
     embedding = SESSION.derived("embedding", (cage_key, emb_key), lambda: _embedding(cage_arrays, emb_arrays))
@@ -141,19 +151,19 @@ def _handle_pose(job: Job, pose: dict) -> tuple[str, dict, tuple, np.ndarray, di
     deformed, stats = deformer.solve(transforms)
     if fresh:
         stats["precompute_s"] = deformer.precompute_s
-    return cage_key, cage_arrays, (cage_key, emb_key), deformed, stats
+    return HandlePose(cage_key, cage_arrays, (cage_key, emb_key), embedding, deformed, stats)
 
 
 @op("solve")
 def solve(job: Job) -> tuple[dict, dict]:
     """A pose of the handles: the deformed cage vertices, or with answer "surface" the deformed
     extracted mesh (float32, its vertex order), which is all the live preview draws."""
-    _cage_key, _cage, embedding_key, deformed, stats = _handle_pose(job, job.params)
+    posed = _handle_pose(job, job.params)
     if job.params.get("answer") == "surface":
-        embedding = SESSION.derived("embedding", embedding_key, None)
-        surface = SESSION.derived("surface map", embedding_key, lambda: SurfaceMap(embedding, len(deformed)), keep=2)
-        return stats, {"surface": surface.apply(deformed).astype(np.float32)}
-    return stats, {"deformed_vertices": np.asarray(deformed, dtype=np.float64)}
+        surface = SESSION.derived("surface map", posed.embedding_key,
+                                  lambda: SurfaceMap(posed.embedding, len(posed.deformed)), keep=2)
+        return posed.stats, {"surface": surface.apply(posed.deformed).astype(np.float32)}
+    return posed.stats, {"deformed_vertices": np.asarray(posed.deformed, dtype=np.float64)}
 
 
 def _camera(cam: dict) -> Camera:
@@ -181,7 +191,8 @@ def render(job: Job) -> tuple[dict, dict]:
         renderer, deformed = PosedRenderer(model), None
     elif kind in ("cage", "handles"):
         if kind == "handles":
-            cage_key, cage_arrays, _surface, deformed, stats = _handle_pose(job, pose)
+            posed = _handle_pose(job, pose)
+            cage_key, cage_arrays, deformed, stats = posed.cage_key, posed.cage, posed.deformed, posed.stats
         else:
             cage_key, cage_arrays = SESSION.shared(job, "cage")["cage"]
             if "deformed_vertices" not in job.arrays:
