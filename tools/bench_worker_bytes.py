@@ -26,7 +26,6 @@ import argparse
 import os
 import statistics
 import sys
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -114,13 +113,11 @@ def main(argv=None) -> int:
     return 0
 
 
-def preview_settle(bpy, preview, worker_client, timeout=600.0) -> None:
-    deadline = time.perf_counter() + timeout
-    while any(s.in_flight or s.waiting is not None for s in preview._solvers.values()):
-        if time.perf_counter() > deadline:
-            raise SystemExit("the live preview did not finish a solve within 10 minutes")
-        worker_client._drain_timer()
-        time.sleep(0.002)
+def preview_settle(bpy, preview, worker_client) -> None:
+    """Let the live preview finish what it was sent, and deliver its answer."""
+    from tools.bench_preview import _settle
+
+    _settle(bpy)
     worker_client._drain_timer()
 
 
