@@ -1,0 +1,148 @@
+"""`prepare`'s stage: a folder of photos → a transforms.json dataset, by structure from motion.
+
+pycolmap (the bindings of COLMAP itself, CPU wheels on PyPI) does the work: SIFT
+features, exhaustive or sequential matching, incremental mapping, all on the CPU.
+Why not a hand-written pipeline: COLMAP is the reference every NeRF tool's data
+preparation uses (instant-ngp's colmap2nerf, nerfstudio's ns-process-data); its
+bundle adjustment and camera model estimation are not something to rewrite.
+
+All photos are taken as one camera (a phone or camera capture; COLMAP's SINGLE
+mode) with the OPENCV model (focal lengths, principal point, k1 k2 p1 p2), which
+the dataset loader turns into rays through the distorted pixels. The result is
+oriented by `orient.py` and written, with the photos it registered, into a
+temporary folder beside the destination that is renamed at the end: a failed or
+interrupted run leaves nothing under DATASET_DIR.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EngineError
+from .colmap_cameras import reconstruction_cameras
+from .orient import apply_to_cameras, orientation
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG"}
+MATCHERS = ("exhaustive", "sequential")
+
+
+def photos_in(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        raise EngineError(f"--images {folder}: no such folder")
+    names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix in IMAGE_SUFFIXES)
+    if len(names) < 3:
+        raise EngineError(f"--images {folder}: {len(names)} photos (.jpg/.png) found; structure from motion needs at least 3")
+    return names
+
+
+def _place(src: Path, dst: Path) -> None:
+    """Hard-link a photo into the dataset (no copy on the same disk), or copy it."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def transforms_for(cameras: list[dict], image_folder: str = "images") -> dict:
+    """transforms.json (instant-ngp / nerfstudio keys) of oriented cameras: shared intrinsics at the
+    top when all frames have one camera, per frame otherwise."""
+    shared = all(c["intrinsics"] == cameras[0]["intrinsics"] for c in cameras)
+    out: dict = dict(cameras[0]["intrinsics"]) if shared else {}
+    if shared and out["camera_model"] == "OPENCV_FISHEYE":
+        out["is_fisheye"] = True
+    frames = []
+    for c in cameras:
+        frame = {"file_path": f"{image_folder}/{c['name']}", "transform_matrix": np.asarray(c["c2w"]).tolist()}
+        if not shared:
+            frame.update(c["intrinsics"])
+        frames.append(frame)
+    out["frames"] = frames
+    return out
+
+
+def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "exhaustive", max_size: int = 1600,
+            seed: int = 0, log=print) -> dict:
+    """Run structure from motion on the photos in `images`, write `out`/transforms.json + `out`/images/.
+
+    Returns a summary: registered and unregistered photos, timings, the camera model found.
+    """
+    import pycolmap
+
+    src, dst = Path(images), Path(out)
+    if matcher not in MATCHERS:
+        raise EngineError(f"--matcher {matcher!r}: one of {', '.join(MATCHERS)}")
+    if not max_size >= 64:
+        raise EngineError(f"--max-size {max_size}: must be at least 64 pixels")
+    names = photos_in(src)
+    if dst.exists() and (not dst.is_dir() or any(dst.iterdir())):
+        raise EngineError(f"--out {dst}: exists and is not an empty folder; choose a new one")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if not os.access(dst.parent, os.W_OK):
+        raise EngineError(f"--out {dst}: cannot write into {dst.parent}")
+    timings: dict[str, float] = {}
+    work = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent))
+    try:
+        database = work / "colmap" / "database.db"
+        database.parent.mkdir()
+        t0 = time.perf_counter()
+        log(f"prepare: features of {len(names)} photos (SIFT, longest side up to {max_size} px)")
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "OPENCV"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = int(max_size)
+        pycolmap.extract_features(database, src, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        timings["features_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        log(f"prepare: {matcher} matching")
+        match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
+        match(database, device=pycolmap.Device.cpu)
+        timings["matching_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        log("prepare: incremental mapping (bundle adjustment)")
+        options = pycolmap.IncrementalPipelineOptions()
+        options.random_seed = int(seed)
+        maps = pycolmap.incremental_mapping(database, src, work / "colmap" / "sparse", options)
+        timings["mapping_s"] = time.perf_counter() - t0
+        if not maps:
+            raise EngineError(f"structure from motion registered none of the {len(names)} photos in {src}: COLMAP found no "
+                              "initial pair with enough matches (photos too different, too little texture or overlap)")
+        reconstruction = max(maps.values(), key=lambda r: r.num_reg_images())
+        cameras = reconstruction_cameras(reconstruction)
+        registered = {c["name"] for c in cameras}
+        missing = [n for n in names if n not in registered]
+        if len(cameras) < 3:
+            raise EngineError(f"structure from motion registered only {len(cameras)} of {len(names)} photos in {src} "
+                              f"({len(maps)} separate reconstruction(s)); take more overlapping photos")
+        if missing:
+            log(f"prepare: {len(missing)} of {len(names)} photos not registered, left out: {', '.join(missing[:10])}"
+                + (" ..." if len(missing) > 10 else ""))
+        points = np.array([p.xyz for p in reconstruction.points3D.values()]) if reconstruction.num_points3D() else None
+        c2ws = np.stack([c["c2w"] for c in cameras])
+        T = orientation(c2ws, points)
+        for c, m in zip(cameras, apply_to_cameras(T, c2ws)):
+            c["c2w"] = m
+        (work / "images").mkdir()
+        for c in cameras:
+            _place(src / c["name"], work / "images" / c["name"])
+        transforms = transforms_for(cameras)
+        (work / "transforms.json").write_text(json.dumps(transforms, indent=1))
+        shutil.rmtree(work / "colmap")
+        summary = {"photos": len(names), "registered": len(cameras), "unregistered": missing, "timings": timings,
+                   "camera_model": transforms.get("camera_model", "per frame"), "points": 0 if points is None else len(points),
+                   "similarity": T.tolist()}
+        (work / "prepare.json").write_text(json.dumps(summary, indent=1))
+        if dst.exists():
+            dst.rmdir()  # empty (checked above)
+        os.replace(work, dst)
+        return summary
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
