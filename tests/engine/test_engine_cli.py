@@ -5,7 +5,7 @@ import sys
 
 from fixtures import REPO
 
-COMMANDS = ("train", "eval", "render", "extract", "cage")
+COMMANDS = ("train", "eval", "render", "extract", "cage", "prepare")
 
 # Runs the CLI with bpy made unimportable, then reports which heavy modules got loaded.
 _RUN_WITHOUT_BPY = """
@@ -38,6 +38,7 @@ def test_each_command_has_the_design_options():
         "render": ["--nerf", "--cameras", "--out", "--cage", "--deformed"],
         "extract": ["--nerf", "--out", "--threshold", "--resolution", "--min-volume"],
         "cage": ["--nerf", "--mesh", "--out"],
+        "prepare": ["--images", "--out"],
     }
     for command, options in expected.items():
         proc = _cli(command, "--help")

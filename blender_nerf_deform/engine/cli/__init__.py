@@ -88,6 +88,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, metavar="T", help="surface density threshold used for extraction (default 10)")
     p.set_defaults(handler=_command("cage"))
 
+    p = sub.add_parser("prepare", help="photos with no poses -> a transforms.json dataset, by structure from motion")
+    p.add_argument("--images", required=True, metavar="DIR", help="folder of photos (.jpg/.png) of one capture")
+    p.add_argument("--out", required=True, metavar="DATASET_DIR", help="new folder: transforms.json + images/")
+    p.add_argument("--matcher", choices=("exhaustive", "sequential"), default="exhaustive",
+                   help="exhaustive (any order; default) or sequential (video frames, many photos)")
+    p.add_argument("--max-size", type=int, default=1600, metavar="PX", help="longest side for feature extraction (default 1600)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of COLMAP's random choices (default 0)")
+    p.set_defaults(handler=_command("prepare"))
+
     return parser
 
 
