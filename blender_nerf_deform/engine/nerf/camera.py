@@ -1,10 +1,12 @@
-"""Pinhole cameras (pure numpy, no torch: the add-on may import this module).
+"""Cameras (pure numpy, no torch: the add-on may import this module).
 
 `Camera`: camera-to-world 4x4 in the Blender/OpenGL convention (the camera looks
 down its local -Z, +Y up; for Blender cameras it is `matrix_world`), focal
-lengths and principal point in pixels, image size. Pixel (i, j) (column i, row j
-from the top) looks along ((i + 0.5 - cx)/fx, -(j + 0.5 - cy)/fy, -1) in camera
-space: rays through pixel centres, as Blender renders them.
+lengths and principal point in pixels, image size, and optionally its lens
+`Distortion` (the models and the rays through distorted pixels: lens.py). A
+pinhole's pixel (i, j) (column i, row j from the top) looks along
+((i + 0.5 - cx)/fx, -(j + 0.5 - cy)/fy, -1) in camera space: rays through pixel
+centres, as Blender renders them.
 """
 
 from __future__ import annotations
@@ -13,6 +15,33 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+
+LENS_MODELS = ("opencv", "fisheye")
+
+
+@dataclass(frozen=True)
+class Distortion:
+    """OpenCV's lens models: "opencv" (radial-tangential k1 k2 k3, p1 p2) or "fisheye" (k1-k4)."""
+
+    model: str = "opencv"
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0  # fisheye only
+    p1: float = 0.0  # radial-tangential only
+    p2: float = 0.0
+
+    def __post_init__(self):
+        if self.model not in LENS_MODELS:
+            raise ValueError(f"unknown lens model {self.model!r}: one of {', '.join(LENS_MODELS)}")
+
+    @property
+    def is_identity(self) -> bool:
+        return not any((self.k1, self.k2, self.k3, self.k4, self.p1, self.p2))
+
+    def as_dict(self) -> dict:
+        return {"model": self.model, "k1": self.k1, "k2": self.k2, "k3": self.k3, "k4": self.k4, "p1": self.p1, "p2": self.p2}
 
 
 @dataclass
@@ -27,6 +56,7 @@ class Camera:
     width: int
     height: int
     name: str = ""
+    distortion: Distortion | None = None  # None: a pinhole (Blender's cameras, NeRF-synthetic data)
 
     @classmethod
     def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float, name: str = "") -> "Camera":

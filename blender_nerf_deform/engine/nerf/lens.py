@@ -21,94 +21,71 @@ from tan θ). Pure torch, float64, on any device; a handful of iterations reach
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
-MODELS = ("opencv", "fisheye")
+from .camera import Distortion
+
 NEWTON_STEPS = 10
 
 
-@dataclass(frozen=True)
-class Distortion:
-    model: str = "opencv"
-    k1: float = 0.0
-    k2: float = 0.0
-    k3: float = 0.0
-    k4: float = 0.0  # fisheye only
-    p1: float = 0.0  # radial-tangential only
-    p2: float = 0.0
+def distort(lens: Distortion, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalized undistorted (x, y) = (X/Z, Y/Z) → distorted (x_d, y_d)."""
+    if lens.model == "fisheye":
+        r = torch.sqrt(x * x + y * y)
+        theta = torch.atan(r)
+        scale = torch.where(r > 1e-12, _theta_d(lens, theta) / r.clamp_min(1e-12), torch.ones_like(r))
+        return x * scale, y * scale
+    r2 = x * x + y * y
+    s = 1 + r2 * (lens.k1 + r2 * (lens.k2 + r2 * lens.k3))
+    xd = s * x + 2 * lens.p1 * x * y + lens.p2 * (r2 + 2 * x * x)
+    yd = s * y + lens.p1 * (r2 + 2 * y * y) + 2 * lens.p2 * x * y
+    return xd, yd
 
-    def __post_init__(self):
-        if self.model not in MODELS:
-            raise ValueError(f"unknown lens model {self.model!r}: one of {', '.join(MODELS)}")
 
-    @property
-    def is_identity(self) -> bool:
-        return not any((self.k1, self.k2, self.k3, self.k4, self.p1, self.p2))
+def _theta_d(lens: Distortion, t: torch.Tensor) -> torch.Tensor:
+    t2 = t * t
+    return t * (1 + t2 * (lens.k1 + t2 * (lens.k2 + t2 * (lens.k3 + t2 * lens.k4))))
 
-    def as_dict(self) -> dict:
-        return {"model": self.model, "k1": self.k1, "k2": self.k2, "k3": self.k3, "k4": self.k4, "p1": self.p1, "p2": self.p2}
 
-    # -- forward: where a direction lands on the sensor ---------------------------------------
-
-    def distort(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Normalized undistorted (x, y) = (X/Z, Y/Z) → distorted (x_d, y_d)."""
-        if self.model == "fisheye":
-            r = torch.sqrt(x * x + y * y)
-            theta = torch.atan(r)
-            scale = torch.where(r > 1e-12, self._theta_d(theta) / r.clamp_min(1e-12), torch.ones_like(r))
-            return x * scale, y * scale
-        r2 = x * x + y * y
-        s = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        xd = s * x + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x)
-        yd = s * y + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y
-        return xd, yd
-
-    def _theta_d(self, t: torch.Tensor) -> torch.Tensor:
-        t2 = t * t
-        return t * (1 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
-
-    # -- inverse: the ray of a distorted pixel ------------------------------------------------
-
-    def ray_directions(self, xd: torch.Tensor, yd: torch.Tensor) -> torch.Tensor:
-        """Unit directions (N, 3) in OpenCV camera coordinates (+z forward) of distorted normalized points."""
-        if self.model == "fisheye":
-            rd = torch.sqrt(xd * xd + yd * yd)
-            theta = rd.clone()  # θ_d ≈ θ for small distortion: a good start
-            for _ in range(NEWTON_STEPS):
-                t2 = theta * theta
-                f = self._theta_d(theta) - rd
-                df = 1 + t2 * (3 * self.k1 + t2 * (5 * self.k2 + t2 * (7 * self.k3 + t2 * 9 * self.k4)))
-                theta = theta - f / torch.where(df.abs() > 1e-12, df, torch.ones_like(df))
-            sin = torch.sin(theta)
-            ux = torch.where(rd > 1e-12, xd / rd.clamp_min(1e-12), torch.zeros_like(rd))
-            uy = torch.where(rd > 1e-12, yd / rd.clamp_min(1e-12), torch.zeros_like(rd))
-            return torch.stack([sin * ux, sin * uy, torch.cos(theta)], dim=-1)
-        x, y = self.undistort(xd, yd)
-        d = torch.stack([x, y, torch.ones_like(x)], dim=-1)
-        return d / d.norm(dim=-1, keepdim=True)
-
-    def undistort(self, xd: torch.Tensor, yd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Radial-tangential: the undistorted (x, y) whose distortion is (xd, yd), by Newton's method."""
-        x, y = xd.clone(), yd.clone()
-        k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
+def ray_directions(lens: Distortion, xd: torch.Tensor, yd: torch.Tensor) -> torch.Tensor:
+    """Unit directions (N, 3) in OpenCV camera coordinates (+z forward) of distorted normalized points."""
+    if lens.model == "fisheye":
+        rd = torch.sqrt(xd * xd + yd * yd)
+        theta = rd.clone()  # θ_d ≈ θ for small distortion: a good start
         for _ in range(NEWTON_STEPS):
-            r2 = x * x + y * y
-            s = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            ds = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d s / d(r²)
-            fx = s * x + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
-            fy = s * y + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
-            # Jacobian of (fx, fy) with respect to (x, y).
-            a = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
-            b = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
-            c = 2 * x * y * ds + 2 * p2 * y + 2 * p1 * x
-            d = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x
-            det = a * d - b * c
-            det = torch.where(det.abs() > 1e-12, det, torch.ones_like(det))
-            x = x - (d * fx - b * fy) / det
-            y = y - (a * fy - c * fx) / det
-        return x, y
+            t2 = theta * theta
+            f = _theta_d(lens, theta) - rd
+            df = 1 + t2 * (3 * lens.k1 + t2 * (5 * lens.k2 + t2 * (7 * lens.k3 + t2 * 9 * lens.k4)))
+            theta = theta - f / torch.where(df.abs() > 1e-12, df, torch.ones_like(df))
+        sin = torch.sin(theta)
+        ux = torch.where(rd > 1e-12, xd / rd.clamp_min(1e-12), torch.zeros_like(rd))
+        uy = torch.where(rd > 1e-12, yd / rd.clamp_min(1e-12), torch.zeros_like(rd))
+        return torch.stack([sin * ux, sin * uy, torch.cos(theta)], dim=-1)
+    x, y = undistort(lens, xd, yd)
+    d = torch.stack([x, y, torch.ones_like(x)], dim=-1)
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def undistort(lens: Distortion, xd: torch.Tensor, yd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Radial-tangential: the undistorted (x, y) whose distortion is (xd, yd), by Newton's method."""
+    x, y = xd.clone(), yd.clone()
+    k1, k2, k3, p1, p2 = lens.k1, lens.k2, lens.k3, lens.p1, lens.p2
+    for _ in range(NEWTON_STEPS):
+        r2 = x * x + y * y
+        s = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        ds = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d s / d(r²)
+        fx = s * x + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+        fy = s * y + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+        # Jacobian of (fx, fy) with respect to (x, y).
+        a = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
+        c = 2 * x * y * ds + 2 * p2 * y + 2 * p1 * x
+        d = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x
+        det = a * d - b * c
+        det = torch.where(det.abs() > 1e-12, det, torch.ones_like(det))
+        x = x - (d * fx - b * fy) / det
+        y = y - (a * fy - c * fx) / det
+    return x, y
 
 
 def camera_directions(fx, fy, cx, cy, i: torch.Tensor, j: torch.Tensor, distortion: Distortion | None) -> torch.Tensor:
@@ -119,5 +96,5 @@ def camera_directions(fx, fy, cx, cy, i: torch.Tensor, j: torch.Tensor, distorti
     y = (j - cy) / fy  # OpenCV's y runs down, as rows do
     if distortion is None or distortion.is_identity:
         return torch.stack([x, -y, -torch.ones_like(x)], dim=-1)
-    d = distortion.ray_directions(x.double(), y.double()).to(x.dtype)
+    d = ray_directions(distortion, x.double(), y.double()).to(x.dtype)
     return torch.stack([d[..., 0], -d[..., 1], -d[..., 2]], dim=-1)

@@ -3,11 +3,13 @@
 One code path serves training (with gradients), the CLI, the Blender worker and
 the ray-bending stage:
 
-- `Camera` / `camera_rays(camera)`: any pinhole camera (fx, fy, cx, cy in
-  pixels, width, height, camera-to-world 4x4) in the Blender/OpenGL convention:
-  the camera looks down its local -Z, +Y is up, and pixel (i, j) (column i,
-  row j from the top) has the direction ((i + 0.5 - cx)/fx, -(j + 0.5 - cy)/fy, -1):
-  rays through pixel centres, as Blender renders them.
+- `Camera` / `camera_rays(camera)`: any camera (fx, fy, cx, cy in pixels,
+  width, height, camera-to-world 4x4, optional lens distortion) in the
+  Blender/OpenGL convention: the camera looks down its local -Z, +Y is up, and
+  a pinhole's pixel (i, j) (column i, row j from the top) has the direction
+  ((i + 0.5 - cx)/fx, -(j + 0.5 - cy)/fy, -1): rays through pixel centres, as
+  Blender renders them; a distorted camera's rays go through the pixel as its
+  lens bent it (lens.py).
 - `render_rays(model, origins, dirs, ...)`: rays → premultiplied colour, alpha,
   depth, in chunks of `chunk` rays so memory stays bounded.
 - `render_image(model, camera, ...)`: a whole frame as straight-alpha RGBA.
@@ -41,6 +43,7 @@ import torch
 from .. import backend
 from . import march_kernels
 from .camera import Camera  # noqa: F401  (re-exported: renderer.Camera is part of the interface)
+from .lens import camera_directions
 from .occupancy import OccupancyGrid
 
 
@@ -53,8 +56,8 @@ def camera_rays(camera: Camera, device="cpu") -> tuple[torch.Tensor, torch.Tenso
     i = torch.arange(camera.width, dtype=torch.float64) + 0.5
     j = torch.arange(camera.height, dtype=torch.float64) + 0.5
     jj, ii = torch.meshgrid(j, i, indexing="ij")
-    d = torch.stack([(ii - camera.cx) / camera.fx, -(jj - camera.cy) / camera.fy, -torch.ones_like(ii)], dim=-1)
-    d = d.reshape(-1, 3) @ c2w[:, :3].T
+    d = camera_directions(camera.fx, camera.fy, camera.cx, camera.cy, ii.reshape(-1), jj.reshape(-1), camera.distortion)
+    d = d @ c2w[:, :3].T
     d = d / d.norm(dim=-1, keepdim=True)
     o = c2w[:, 3].expand_as(d)
     return o.to(device=device, dtype=torch.float32).contiguous(), d.to(device=device, dtype=torch.float32).contiguous()
