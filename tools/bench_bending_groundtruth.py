@@ -400,7 +400,7 @@ def main(argv=None) -> int:
         reused.append("checkpoint")
     else:
         timings["train_s"] = engine(work / "train.log", "train", "--data", work / "data", "--out", run,
-                                    "--max-seconds", args.train_seconds, "--device", args.device)
+                                    "--max-seconds", args.train_seconds, "--device", args.device, "--overwrite")
         print(f"train: {timings['train_s']:.0f} s; {_last_lines(work / 'train.log', 1)}", flush=True)
     if args.reuse and mesh.is_file():
         reused.append("mesh")

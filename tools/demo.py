@@ -214,7 +214,7 @@ def main(argv=None) -> int:
     run_dir = out / "run"
     with stage("train", f"train the NeRF for {args.train_seconds:g} s"):
         run("-m", "blender_nerf_deform.engine", "train", "--data", dataset, "--out", run_dir,
-            "--max-seconds", args.train_seconds)
+            "--max-seconds", args.train_seconds, "--overwrite")  # a rerun of the demo trains anew
         psnr = run("-m", "blender_nerf_deform.engine", "eval", "--nerf", run_dir / "nerf.ckpt",
                    "--data", dataset / "test", capture=True)
         print("    held-out views:", psnr.strip().splitlines()[-1], flush=True)

@@ -9,7 +9,7 @@ from .cage_store import store_cage, store_embedding
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .preview import PREVIEW_KEY
-from .properties import owning_nerf
+from .properties import alive, alive_object, forget_deleted, owning_nerf
 
 
 def surface_arrays(surface: bpy.types.Object) -> dict[str, np.ndarray]:
@@ -32,11 +32,15 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return owning_nerf(context.active_object) is not None
+        if owning_nerf(context.active_object) is None:
+            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
+            return False
+        return True
 
     def request(self, context):
+        forget_deleted()  # a cage or mesh deleted since the last update is gone
         nerf = owning_nerf(context.active_object)
-        surface = nerf.nerf_deform.surface
+        surface = alive(nerf.nerf_deform.surface)
         if surface is None:
             raise ValueError(f"{nerf.name} has no extracted mesh yet: run Extract Mesh first")
         if surface.mode == "EDIT":
@@ -55,9 +59,14 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
 
     def apply(self, context, result, arrays):
         nerf = self._nerf
+        # From the UI the worker builds while the artist works on: the NeRF or its mesh may have
+        # been deleted or edited since the request.
+        surface = alive(nerf.nerf_deform.surface) if alive_object(nerf) else None
+        if surface is None or len(surface.data.vertices) != len(arrays["tet_ids"]):
+            return self._fail(ValueError("the NeRF or its extracted mesh was deleted or edited while the cage was built: "
+                                         "run Build Cage again"))
         s = nerf.nerf_deform
-        surface = s.surface
-        cage = s.cage
+        cage = alive(s.cage)
         if cage is None:
             cage = bpy.data.objects.new(f"{nerf.name} Cage", bpy.data.meshes.new(f"{nerf.name} Cage"))
             for collection in nerf.users_collection:

@@ -63,6 +63,18 @@ def set_triangles(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray)
     mesh.polygons.add(len(faces))
     mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(faces), 3, dtype=np.int32))
     mesh.update(calc_edges=True)
+    repair_selection_attributes(mesh)
+
+
+def repair_selection_attributes(mesh: bpy.types.Mesh) -> None:
+    """Drop mistyped selection attributes (nothing is selected then; `set_triangles` calls it). In bpy 5.0.1
+    `Mesh.update(calc_edges=True)` on a mesh without edges (what `set_triangles` builds) makes
+    ".select_edge" an INT32_2D attribute, the type of ".edge_verts"; selecting an edge of the
+    mesh then (from Python, and so from any script or add-on) crashes Blender."""
+    for name in (".select_vert", ".select_edge", ".select_poly"):
+        attribute = mesh.attributes.get(name)
+        if attribute is not None and attribute.data_type != "BOOLEAN":
+            mesh.attributes.remove(attribute)
 
 
 def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray) -> None:
@@ -117,9 +129,11 @@ def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.
 
 def deformed_cage_in_nerf_frame(nerf: bpy.types.Object, cage_object: bpy.types.Object, depsgraph) -> np.ndarray:
     """The cage as its modifiers and its own placement deform it, in the NeRF's frame."""
+    from .properties import to_nerf_frame  # (properties imports this module)
+
     local = evaluated_cage_vertices(cage_object, depsgraph)
     nerf_eval, cage_eval = nerf.evaluated_get(depsgraph), cage_object.evaluated_get(depsgraph)
-    relative = np.linalg.inv(np.array(nerf_eval.matrix_world)) @ np.array(cage_eval.matrix_world)
+    relative = np.array(to_nerf_frame(nerf, nerf_eval.matrix_world)) @ np.array(cage_eval.matrix_world)
     return local @ relative[:3, :3].T + relative[:3, 3]
 
 

@@ -39,9 +39,9 @@ def handle_pose(nerf, depsgraph) -> tuple[dict, dict] | None:
     """
     s = nerf.nerf_deform
     handles = handles_of(nerf)
-    if not handles:
-        return None
     surface = s.surface
+    if not handles or surface is None or s.cage is None:
+        return None
     regions = [region_vertices(surface, h.nerf_deform.region) for h in handles]
     region_arrays = {
         "handle_index": np.concatenate(regions) if regions else np.zeros(0, np.int64),

@@ -5,10 +5,11 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from .cage_store import set_triangles
+from .cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY, EMBED_WEIGHTS_KEY, repair_selection_attributes,
+                         set_triangles)
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
-from .properties import handles_of, owning_nerf
+from .properties import alive, alive_object, forget_deleted, handles_of, owning_nerf
 from .frame_render import srgb_to_linear
 
 COLOR_ATTRIBUTE = "NeRF Color"
@@ -23,6 +24,17 @@ def fill_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray, col
     mesh.color_attributes.active_color = attribute
 
 
+def forget_cage_data(surface: bpy.types.Object) -> None:
+    """What a previous mesh left that would not match a new one: its embedding in a deleted cage
+    and its shape keys (the preview; a key holds one point per old vertex)."""
+    mesh = surface.data
+    for key in (EMBED_TET_KEY, EMBED_WEIGHTS_KEY, EMBED_COUNT_KEY, EMBED_CONTENT_KEY):
+        if key in mesh:
+            del mesh[key]
+    if mesh.shape_keys is not None:
+        surface.shape_key_clear()
+
+
 class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
     """Extract the NeRF's surface (marching cubes at the density threshold), drop small floaters, and import it"""
 
@@ -32,24 +44,36 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return owning_nerf(context.active_object) is not None
+        if owning_nerf(context.active_object) is None:
+            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
+            return False
+        return True
 
     def request(self, context):
+        forget_deleted()  # a cage or handle deleted since the last update is gone
         nerf = owning_nerf(context.active_object)
         s = nerf.nerf_deform
-        if s.cage is not None or handles_of(nerf):
+        if alive(s.cage) is not None or handles_of(nerf, with_regions=False):
             raise ValueError(
                 f"{nerf.name} already has a cage or handles made on its mesh; a new mesh would not match them: "
                 "delete the cage object and the handles first"
             )
+        if (surface := alive(s.surface)) is not None and surface.mode == "EDIT":
+            raise ValueError(f"leave Edit Mode on {surface.name} first")
         self._nerf = nerf
         params = {"checkpoint": checkpoint_path(nerf), "threshold": s.threshold, "resolution": s.resolution, "min_volume": s.min_volume}
         return "extract", params, None
 
     def apply(self, context, result, arrays):
         nerf = self._nerf
+        if not alive_object(nerf):  # deleted while the worker extracted (from the UI)
+            return self._fail(ValueError("the NeRF was deleted while its mesh was extracted"))
         s = nerf.nerf_deform
-        surface = s.surface
+        surface = alive(s.surface)
+        if surface is not None and surface.mode == "EDIT":
+            return self._fail(ValueError(f"{surface.name} went into Edit Mode while it was extracted: run Extract Mesh again"))
+        if surface is not None:
+            forget_cage_data(surface)
         if surface is None:
             surface = bpy.data.objects.new(f"{nerf.name} Mesh", bpy.data.meshes.new(f"{nerf.name} Mesh"))
             for collection in nerf.users_collection:
@@ -64,5 +88,24 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
+@bpy.app.handlers.persistent
+def _repair_loaded_meshes(*_args) -> None:
+    """Meshes extracted or caged before `repair_selection_attributes` existed, as files keep them."""
+    for obj in bpy.data.objects:
+        if obj.type == "MESH" and obj.nerf_deform.role in ("SURFACE", "CAGE") and obj.data.library is None:
+            repair_selection_attributes(obj.data)
+
+
 _classes = (NERFDEFORM_OT_extract_mesh,)
-register, unregister = bpy.utils.register_classes_factory(_classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
+
+
+def register():
+    _register_classes()
+    bpy.app.handlers.load_post.append(_repair_loaded_meshes)
+
+
+def unregister():
+    if _repair_loaded_meshes in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_repair_loaded_meshes)
+    _unregister_classes()

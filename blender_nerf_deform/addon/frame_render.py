@@ -27,6 +27,7 @@ from . import jobs
 from .camera import CameraError, pinhole_from_blender
 from .deformation import frame_pose
 from .nerf_ops import checkpoint_path
+from .properties import to_nerf_frame
 from .worker_client import WorkerError
 
 NO_HIT_DEPTH = 1e10
@@ -58,7 +59,7 @@ def frame_request(depsgraph, nerf, downscale: int = 1) -> FrameRequest:
     camera = scene.camera.evaluated_get(depsgraph)
     nerf_eval = nerf.evaluated_get(depsgraph)
     pinhole = pinhole_from_blender(scene, camera).downscaled(downscale)
-    to_nerf = np.linalg.inv(np.array(nerf_eval.matrix_world, dtype=np.float64))
+    to_nerf = np.array(to_nerf_frame(nerf, nerf_eval.matrix_world), dtype=np.float64)
     c2w = to_nerf @ np.array(pinhole.camera_to_world, dtype=np.float64)
     # Camera-space ray of each pixel has z = -1: its planar depth is 1 per unit of that vector.
     i = np.arange(pinhole.width) + 0.5
@@ -120,7 +121,7 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
             frame.warnings.append(f"NeRF Deform: frame {scene.frame_current}: {result['inverted_tets']} inverted and "
                                   f"{result['degenerate_tets']} degenerate cage tets (folds show the folded content)")
         frame.rgba, frame.depth = passes(out, request.depth_factor)
-    except (CameraError, ValueError, WorkerError) as error:
+    except (CameraError, ValueError, WorkerError) as error:  # PlacementError is a ValueError
         if isinstance(error, WorkerError) and error.kind == "cancelled":
             if should_cancel is not None and should_cancel():
                 frame.cancelled = True  # Esc: Blender asked, and stops the render itself

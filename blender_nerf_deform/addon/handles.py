@@ -14,7 +14,7 @@ import bmesh  # noqa: I001
 import numpy as np
 from mathutils import Matrix
 
-from .properties import PIN_GROUP, handles_of, owning_nerf, select_only
+from .properties import PIN_GROUP, alive, handles_of, owning_nerf, select_only, to_nerf_frame
 
 
 def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
@@ -40,18 +40,22 @@ def group_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
 
 def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=None) -> np.ndarray:
     """4x4 affine (NeRF frame) that takes the handle's region from rest to where the handle is,
-    as evaluated in `depsgraph` (a frame being rendered) or as the objects are now."""
+    as evaluated in `depsgraph` (a frame being rendered) or as the objects are now. A NeRF
+    scaled to zero has no frame: PlacementError naming it."""
+    original = nerf
     if depsgraph is not None:
         handle, nerf = handle.evaluated_get(depsgraph), nerf.evaluated_get(depsgraph)
     rest = Matrix(np.reshape(handle.nerf_deform.rest_matrix, (4, 4)).tolist())
-    return np.array(nerf.matrix_world.inverted_safe() @ handle.matrix_world @ rest.inverted_safe())
+    return np.array(to_nerf_frame(original, nerf.matrix_world) @ handle.matrix_world @ rest.inverted_safe())
 
 
 def _surface_of(context) -> tuple[bpy.types.Object | None, bpy.types.Object | None]:
     obj = context.active_object
     if obj is None or obj.type != "MESH" or obj.nerf_deform.role != "SURFACE":
         return None, None
-    return obj, owning_nerf(obj)
+    nerf = owning_nerf(obj)
+    # The NeRF's extracted mesh itself (a duplicate or a leftover has the role but no handles).
+    return (obj, nerf) if nerf is not None and nerf.nerf_deform.surface == obj else (obj, None)
 
 
 def _overlaps(surface: bpy.types.Object, nerf: bpy.types.Object, vertices: np.ndarray, skip_group: str = "") -> str | None:
@@ -90,7 +94,10 @@ class _SelectionOperator:
         if surface is None or surface.mode != "EDIT":
             cls.poll_message_set("Select vertices of a NeRF's extracted mesh in Edit Mode")
             return False
-        return nerf is not None
+        if nerf is None:
+            cls.poll_message_set(f"{surface.name} is no longer the extracted mesh of a NeRF (its NeRF was deleted?)")
+            return False
+        return True
 
     def selection(self, context):
         """(surface, nerf, selected vertex indices), or None after reporting an empty selection."""
@@ -179,12 +186,15 @@ class NERFDEFORM_OT_remove_handle(bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return obj is not None and obj.nerf_deform.role == "HANDLE"
+        if obj is None or obj.nerf_deform.role != "HANDLE":
+            cls.poll_message_set("Make a handle of a NeRF the active object")
+            return False
+        return True
 
     def execute(self, context):
         handle = context.active_object
-        nerf = handle.nerf_deform.nerf
-        surface = nerf.nerf_deform.surface if nerf is not None else None
+        nerf = alive(handle.nerf_deform.nerf)
+        surface = alive(nerf.nerf_deform.surface) if nerf is not None else None
         if surface is not None and (group := surface.vertex_groups.get(handle.nerf_deform.region)) is not None:
             surface.vertex_groups.remove(group)
         name = handle.name
@@ -202,11 +212,19 @@ class NERFDEFORM_OT_reset_pose(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return owning_nerf(context.active_object) is not None
+        if owning_nerf(context.active_object) is None:
+            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
+            return False
+        return True
 
     def execute(self, context):
         nerf = owning_nerf(context.active_object)
-        handles = handles_of(nerf)
+        try:
+            to_nerf_frame(nerf)  # a NeRF scaled to zero would leave every handle scaled to zero
+        except ValueError as error:
+            self.report({"ERROR"}, f"{self.bl_label}: {error}")
+            return {"CANCELLED"}
+        handles = handles_of(nerf, with_regions=False)
         for handle in handles:
             rest = Matrix(np.reshape(handle.nerf_deform.rest_matrix, (4, 4)).tolist())
             handle.matrix_world = nerf.matrix_world @ rest

@@ -19,23 +19,81 @@ def checkpoint_path(nerf: bpy.types.Object) -> str:
     return os.path.normpath(bpy.path.abspath(nerf.nerf_deform.checkpoint))
 
 
-def relative_if_possible(path: str) -> str:
-    """`//`-relative to the .blend when the .blend is saved (and on the same drive), else absolute."""
-    if not bpy.data.filepath:
-        return path
+def relative_if_possible(path: str, start: str | None = None) -> str:
+    """`//`-relative to the folder `start` (default: the .blend's, when it is saved) where the
+    path is on the same drive, else absolute."""
+    if start is None:
+        if not bpy.data.filepath:
+            return path
+        start = os.path.dirname(bpy.data.filepath)
     try:
-        return bpy.path.relpath(path)
+        return bpy.path.relpath(path, start=start)
     except ValueError:  # another drive on Windows
         return path
 
 
+def rebased_path(path: str, old_blend: str, new_blend: str, make_relative: bool = True) -> str:
+    """`path` as stored in the .blend `old_blend` ("": never saved), rewritten for the .blend
+    `new_blend`: a `//` path is resolved against the old file's folder and made relative to the
+    new one's (absolute where it cannot be: another drive); an absolute one is made relative
+    when `make_relative`."""
+    if path.startswith("//"):
+        if not old_blend:
+            return path  # relative to no file: nothing to resolve it against
+        absolute = os.path.normpath(bpy.path.abspath(path, start=os.path.dirname(old_blend)))
+    elif not make_relative:
+        return path
+    else:
+        absolute = os.path.abspath(path)
+    return relative_if_possible(absolute, start=os.path.dirname(os.path.abspath(new_blend)))
+
+
+# (object, checkpoint path before the save) of the save under way: a save that did not make the
+# saved file the open one (Save Copy) or failed gives the open file its paths back.
+_before_save: list[tuple[bpy.types.Object, str]] = []
+
+
+def _saved_path(args) -> str:
+    """The file being saved, as Blender passes it to save handlers (bpy.data.filepath before 4.x)."""
+    return next((a for a in args if isinstance(a, str)), bpy.data.filepath)
+
+
 @bpy.app.handlers.persistent
-def make_checkpoint_paths_relative(*_args) -> None:
-    """On save: a NeRF loaded before the .blend had a path gets its checkpoint path made relative."""
+def make_checkpoint_paths_relative(*args) -> None:
+    """On save: every NeRF's checkpoint path, relative to the file being saved. Blender's own
+    relative remap does not rewrite add-on properties, so Save As into another folder would break
+    `//` paths; a NeRF loaded before the .blend had a path gets its path made relative."""
+    _before_save.clear()
+    new_blend = _saved_path(args)
+    if not new_blend:  # the startup file
+        return
+    make_relative = bpy.context.preferences.filepaths.use_relative_paths
     for obj in bpy.data.objects:
         s = obj.nerf_deform
-        if s.role == "NERF" and s.checkpoint and not s.checkpoint.startswith("//"):
-            s.checkpoint = relative_if_possible(s.checkpoint)
+        if s.role != "NERF" or not s.checkpoint or obj.library is not None:
+            continue
+        path = rebased_path(s.checkpoint, bpy.data.filepath, new_blend, make_relative)
+        if path != s.checkpoint:
+            _before_save.append((obj, s.checkpoint))
+            s.checkpoint = path
+
+
+@bpy.app.handlers.persistent
+def _after_save(*args) -> None:
+    saved = _saved_path(args)
+    if not bpy.data.filepath or os.path.normpath(bpy.data.filepath) != os.path.normpath(saved):
+        _restore_paths()  # a copy: the open file keeps paths relative to itself
+    _before_save.clear()
+
+
+@bpy.app.handlers.persistent
+def _restore_paths(*_args) -> None:
+    for obj, path in _before_save:
+        try:
+            obj.nerf_deform.checkpoint = path
+        except ReferenceError:
+            pass
+    _before_save.clear()
 
 
 class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
@@ -93,12 +151,22 @@ _classes = (NERFDEFORM_OT_load_nerf,)
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
 
 
+def _handlers():
+    h = bpy.app.handlers
+    handlers = [(h.save_pre, make_checkpoint_paths_relative), (h.save_post, _after_save)]
+    if hasattr(h, "save_post_fail"):  # Blender 4.x+
+        handlers.append((h.save_post_fail, _restore_paths))
+    return handlers
+
+
 def register():
     _register_classes()
-    bpy.app.handlers.save_pre.append(make_checkpoint_paths_relative)
+    for handlers, fn in _handlers():
+        handlers.append(fn)
 
 
 def unregister():
-    if make_checkpoint_paths_relative in bpy.app.handlers.save_pre:
-        bpy.app.handlers.save_pre.remove(make_checkpoint_paths_relative)
+    for handlers, fn in _handlers():
+        if fn in handlers:
+            handlers.remove(fn)
     _unregister_classes()

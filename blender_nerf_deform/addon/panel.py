@@ -43,7 +43,7 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         col.operator("nerf_deform.pin_selection", icon="PINNED")
         col.operator("nerf_deform.remove_handle", icon="X")
         col.operator("nerf_deform.reset_pose", icon="LOOP_BACK")
-        for handle in handles_of(nerf):
+        for handle in handles_of(nerf, with_regions=False):
             box.label(text=f"{handle.name}", icon="EMPTY_DATA")
 
 

@@ -61,6 +61,13 @@ def show_deformed(surface: bpy.types.Object, positions: np.ndarray) -> None:
     surface.data.update_tag()
 
 
+def hide_deformed(surface: bpy.types.Object) -> None:
+    """Drop the preview shape key: the mesh shows its rest shape."""
+    keys = surface.data.shape_keys
+    if keys is not None and (key := keys.key_blocks.get(PREVIEW_KEY)) is not None:
+        surface.shape_key_remove(key)
+
+
 def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
     """Deformed surface of `nerf` in Cage Modifiers mode (None in the modes the worker solves)."""
     s = settings(nerf)
@@ -75,7 +82,9 @@ def preview_positions(nerf: bpy.types.Object, depsgraph) -> np.ndarray | None:
 def _solve_in_background(nerf: bpy.types.Object, depsgraph) -> None:
     """Send the handles' pose to the worker when it changed; the deformed surface it answers is the preview."""
     request = handle_pose(nerf, depsgraph)
-    if request is None:
+    if request is None:  # the last handle was removed: the surface is back at rest
+        if _last_pose.pop(nerf.name, None) is not None:
+            hide_deformed(settings(nerf).surface)
         return
     pose, shared = request
     state = repr((pose, sorted((slot, key) for slot, (key, _load) in shared.items()))).encode()

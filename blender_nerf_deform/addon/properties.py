@@ -7,10 +7,21 @@ of its transforms.json and of every engine array). Handles are Empties whose
 region is a vertex group of the surface mesh; a handle's pose is its matrix in
 the NeRF's frame, compared with the rest matrix recorded when it was made, so
 parenting a handle to a bone, constraints and drivers all just work.
+
+A deleted part is gone. Deleting an object in the viewport or the outliner
+only unlinks it from its collections; our pointers (the NeRF's `surface` and
+`cage`, a handle's `nerf`) would keep it alive in the file, rendering and
+blocking Extract Mesh while no one sees it. An object in no collection counts
+as deleted: every reader here skips it, and `forget_deleted` (run after
+every change of collections, on load, undo, redo and save) clears the pointers
+to it, so it is not saved either.
 """
 
 import bpy
+from bpy.app.handlers import persistent
 from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
+
+from .cage_store import CageDataError
 
 ROLES = (
     ("NONE", "None", "Not part of a NeRF"),
@@ -66,18 +77,58 @@ def settings(obj: bpy.types.Object) -> NERFDEFORM_ObjectSettings:
     return obj.nerf_deform
 
 
+class PlacementError(CageDataError):
+    """The NeRF object's transform cannot place the NeRF (a zero scale). A CageDataError, so that
+    whatever reports a cage that cannot be used (the live preview, renders) reports this too."""
+
+
+def is_deleted(obj: bpy.types.Object | None) -> bool:
+    """Whether `obj` was deleted by the artist (unlinked from every collection) though a pointer still holds it."""
+    return obj is not None and not obj.users_collection
+
+
+def alive(obj: bpy.types.Object | None) -> bpy.types.Object | None:
+    """`obj`, or None when it is missing or deleted (a pointer of ours to a deleted part)."""
+    return None if obj is None or is_deleted(obj) else obj
+
+
+def alive_object(obj: bpy.types.Object) -> bool:
+    """Whether a Python reference still names an object in the file, not deleted (an operator's
+    NeRF may be removed while its worker job runs)."""
+    try:
+        return not is_deleted(obj)
+    except ReferenceError:  # removed from bpy.data
+        return False
+
+
+def to_nerf_frame(nerf: bpy.types.Object, matrix_world=None):
+    """The inverse of the NeRF object's world matrix (or of `matrix_world`, its evaluated one),
+    which takes world coordinates into the NeRF's frame; a clear error naming the object when its
+    scale is zero (a Matrix)."""
+    matrix = nerf.matrix_world if matrix_world is None else matrix_world
+    try:
+        return matrix.inverted()
+    except ValueError:
+        scale = ", ".join(f"{x:.3g}" for x in matrix.to_scale())
+        raise PlacementError(
+            f"NeRF object '{nerf.name}' has a zero scale ({scale}): the NeRF cannot be placed; "
+            "give it a non-zero scale (Object Properties > Transform > Scale)"
+        ) from None
+
+
 def owning_nerf(obj: bpy.types.Object | None) -> bpy.types.Object | None:
-    """The NeRF object `obj` belongs to (itself, its parent for surface/cage, its owner for handles)."""
-    if obj is None:
+    """The NeRF object `obj` belongs to (itself, its parent for surface/cage, its owner for handles);
+    None for a deleted object or one whose NeRF was deleted."""
+    if obj is None or is_deleted(obj):
         return None
     s = obj.nerf_deform
     if s.role == "NERF":
         return obj
     if s.role == "HANDLE":
-        return s.nerf
+        return alive(s.nerf)
     if s.role in ("SURFACE", "CAGE"):
         parent = obj.parent
-        return parent if parent is not None and parent.nerf_deform.role == "NERF" else None
+        return alive(parent) if parent is not None and parent.nerf_deform.role == "NERF" else None
     return None
 
 
@@ -85,23 +136,73 @@ def select_only(context, obj: bpy.types.Object) -> None:
     """Make `obj` the one selected and active object (ready for its gizmos)."""
     for other in context.selected_objects:
         other.select_set(False)
-    obj.select_set(True)
-    context.view_layer.objects.active = obj
+    if context.view_layer.objects.get(obj.name) == obj:  # not in an excluded or unlinked collection
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
 
 
-def handles_of(nerf: bpy.types.Object) -> list[bpy.types.Object]:
-    """The handles of a NeRF, in a stable order (by name), so solves are deterministic."""
+def handles_of(nerf: bpy.types.Object, *, with_regions: bool = True) -> list[bpy.types.Object]:
+    """The handles of a NeRF, in a stable order (by name), so solves are deterministic; deleted
+    ones left out. A handle's region is a vertex group of the NeRF's extracted mesh: once that
+    mesh is deleted the handles move nothing, and only `with_regions=False` lists them."""
+    if with_regions and alive(nerf.nerf_deform.surface) is None:
+        return []
     return sorted(
-        (o for o in bpy.data.objects if o.nerf_deform.role == "HANDLE" and o.nerf_deform.nerf == nerf),
+        (o for o in bpy.data.objects
+         if o.nerf_deform.role == "HANDLE" and o.nerf_deform.nerf == nerf and not is_deleted(o)),
         key=lambda o: o.name,
     )
+
+
+def forget_deleted() -> int:
+    """Clear our pointers to deleted objects (module docstring); returns how many were cleared.
+    A NeRF whose cage is gone renders at rest, and so its mesh's preview goes back to rest."""
+    from .preview import PREVIEW_KEY  # (preview imports this module)
+
+    cleared = 0
+    for obj in bpy.data.objects:
+        s = obj.nerf_deform
+        if obj.library is not None or s.role not in ("NERF", "HANDLE"):
+            continue
+        for name in ("surface", "cage") if s.role == "NERF" else ("nerf",):
+            if is_deleted(getattr(s, name)):
+                setattr(s, name, None)
+                cleared += 1
+                surface = alive(s.surface) if name == "cage" else None
+                keys = surface.data.shape_keys if surface is not None else None
+                if keys is not None and (key := keys.key_blocks.get(PREVIEW_KEY)) is not None:
+                    surface.shape_key_remove(key)
+    return cleared
+
+
+@persistent
+def _forget_deleted_on_depsgraph_update(scene, depsgraph):
+    # Objects are deleted by unlinking them: the collections (or the scene) change.
+    if depsgraph.id_type_updated("COLLECTION") or depsgraph.id_type_updated("SCENE"):
+        forget_deleted()
+
+
+@persistent
+def _forget_deleted(*_args):
+    forget_deleted()
+
+
+def _handlers():
+    h = bpy.app.handlers
+    return ((h.depsgraph_update_post, _forget_deleted_on_depsgraph_update), (h.load_post, _forget_deleted),
+            (h.undo_post, _forget_deleted), (h.redo_post, _forget_deleted), (h.save_pre, _forget_deleted))
 
 
 def register():
     bpy.utils.register_class(NERFDEFORM_ObjectSettings)
     bpy.types.Object.nerf_deform = PointerProperty(type=NERFDEFORM_ObjectSettings)
+    for handlers, fn in _handlers():
+        handlers.append(fn)
 
 
 def unregister():
+    for handlers, fn in _handlers():
+        if fn in handlers:
+            handlers.remove(fn)
     del bpy.types.Object.nerf_deform
     bpy.utils.unregister_class(NERFDEFORM_ObjectSettings)

@@ -46,7 +46,9 @@ PACKAGE_DIR = Path(__file__).resolve().parent.parent
 WORKER_MODULE = f"{PACKAGE_DIR.name}.engine.service.worker"
 # This add-on's top-level module (`bl_ext.<repo>.blender_nerf_deform` as an extension).
 PACKAGE_DIR_MODULE = __package__.rpartition(".")[0]
-START_TIMEOUT_S = 120.0
+# How long a starting worker may take to answer (importing torch, compiling kernels on a busy
+# machine take minutes); $NERF_DEFORM_WORKER_START_TIMEOUT (seconds) overrides it.
+START_TIMEOUT_S = 300.0
 _STDERR_LINES = 40
 
 
@@ -178,19 +180,39 @@ class WorkerClient:
         except OSError as exc:
             raise WorkerError(f"cannot start worker Python {self.python}: {exc}", "setup") from None
         self._proc = proc
-        threading.Thread(target=self._pump_stderr, args=(proc,), name="nerf-worker-stderr", daemon=True).start()
+        stderr_pump = threading.Thread(target=self._pump_stderr, args=(proc,), name="nerf-worker-stderr", daemon=True)
+        stderr_pump.start()
         first: queue.Queue = queue.Queue()
         threading.Thread(target=self._pump_stdout, args=(proc, first), name="nerf-worker-stdout", daemon=True).start()
+        timeout = START_TIMEOUT_S
         try:
-            header, _ = first.get(timeout=START_TIMEOUT_S)
+            timeout = float(os.environ.get("NERF_DEFORM_WORKER_START_TIMEOUT") or timeout)
+        except ValueError:
+            pass  # not a number: the default
+        if not timeout > 0:  # zero, negative or NaN: the default
+            timeout = START_TIMEOUT_S
+        timeout = min(timeout, 1e6)
+        try:
+            header, _ = first.get(timeout=timeout)
         except queue.Empty:
             self._kill()
-            raise WorkerError(f"worker Python {self.python} did not start within {START_TIMEOUT_S:.0f} s", "setup") from None
+            stderr_pump.join(timeout=1.0)  # the last lines it wrote reach the tail
+            tail = "\n".join(self._stderr_tail).strip()
+            raise WorkerError(
+                f"the NeRF worker ({self.python} -m {WORKER_MODULE}, in {work}) did not answer within {timeout:g} s "
+                "of starting and was stopped. It may only have been slow (importing torch or compiling kernels on a "
+                "busy machine): try again, or give it longer with the environment variable "
+                "NERF_DEFORM_WORKER_START_TIMEOUT=<seconds>. "
+                + (f"Its last output:\n{tail}" if tail else "It wrote nothing (its output goes to Blender's console, "
+                   "prefixed [nerf worker])."),
+                "setup",
+            ) from None
         if header.get("type") == "fatal":
             self._kill()
             raise WorkerError(header["message"], "setup")
         if header.get("type") != "hello":
             self._kill()
+            stderr_pump.join(timeout=1.0)  # its last lines (why it ended) reach the report
             raise WorkerError(f"worker Python {self.python} failed to start: {self._exit_report()}", "setup")
         self.hello = header
 

@@ -1,9 +1,22 @@
-"""Writing files so that nothing the user made is ever half-written (DESIGN.md, conventions)."""
+"""Writing files so that nothing the user made is ever half-written (DESIGN.md, conventions).
+
+- `atomic_write`: a temporary file beside the target, flushed, then renamed over it; a full
+  disk or a read-only folder is one EngineError naming the file, and Ctrl-C waits until the
+  rename is done (a second Ctrl-C during the final checkpoint must not lose it).
+- `check_writable`: probe an output's folder before minutes of work go into it.
+- `folder_lock`: one process at a time in a run folder (fcntl.flock: the kernel releases it
+  when its process dies, so a crash never leaves a lock that blocks the next run).
+- `remove_stale_temporaries`: what a killed process left of an atomic write.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import BinaryIO, Callable
 
@@ -22,33 +35,71 @@ def _process_umask() -> int:
 
 
 _UMASK = _process_umask()
+_DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
+def write_error(path, exc: OSError) -> EngineError:
+    """The one-line error of a failed write of `path`: a full disk says so."""
+    if exc.errno in _DISK_FULL:
+        return EngineError(f"cannot write {path}: the disk is full ({exc.strerror}); free some space and run again")
+    return EngineError(f"cannot write {path}: {exc.strerror or exc}")
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Ctrl-C (SIGINT) inside the block is held until the block ends, then delivered as it would
+    have been. Only the main thread can handle signals; elsewhere the block runs as is."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
+        yield  # None: a handler installed outside Python, which could not be put back
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            if previous is signal.default_int_handler:
+                raise KeyboardInterrupt
+            if callable(previous):
+                previous(signal.SIGINT, received[0])
+            elif previous == signal.SIG_DFL:
+                signal.raise_signal(signal.SIGINT)
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
     """Write `path` through `write(f)` into a temporary file beside it, flushed to disk, then
-    rename it over `path`: an interrupted write leaves the previous file (or none), never a
-    broken one. The folder must exist."""
+    rename it over `path`: an interrupted or failed write leaves the previous file (or none),
+    never a broken one. The folder must exist."""
     path = Path(path)
     if not path.parent.is_dir():
         raise EngineError(f"cannot write {path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
+    if path.is_dir():
+        raise EngineError(f"cannot write {path}: it is a folder")
+    with interrupts_deferred():
         try:
-            mode = path.stat().st_mode & 0o7777  # replacing a file keeps its permissions
-        except FileNotFoundError:
-            mode = 0o666 & ~_UMASK
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
-    except BaseException:
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        except OSError as exc:
+            raise write_error(path, exc) from None
         try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+            try:
+                mode = path.stat().st_mode & 0o7777  # replacing a file keeps its permissions
+            except FileNotFoundError:
+                mode = 0o666 & ~_UMASK
+            os.chmod(tmp, mode)
+            os.replace(tmp, path)
+        except BaseException as exc:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+            if isinstance(exc, OSError):
+                raise write_error(path, exc) from None
+            raise
 
 
 def write_png_rgba(path, rgba: np.ndarray) -> None:
@@ -57,3 +108,114 @@ def write_png_rgba(path, rgba: np.ndarray) -> None:
 
     arr = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     atomic_write(path, lambda f: Image.fromarray(arr, mode="RGBA").save(f, format="PNG"))
+
+
+def _probe_folder(folder: Path, what) -> None:
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".nerf_deform_probe.", suffix=".tmp", dir=folder)
+    except OSError as exc:
+        raise write_error(what, exc) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_writable(path, folder: bool = False) -> None:
+    """EngineError now, before any long work, if `path` cannot be written: a file (its folder
+    must exist and take new files) or, with `folder`, a folder to fill (created with its parents
+    when missing: the nearest existing one must take new entries)."""
+    path = Path(path)
+    if "\0" in str(path):
+        raise EngineError(f"output path {str(path)!r} holds a NUL byte")
+    if folder:
+        if path.exists() and not path.is_dir():
+            raise EngineError(f"--out {path}: exists and is not a folder")
+        existing = path
+        while not existing.exists():
+            if existing.parent == existing:
+                break
+            existing = existing.parent
+        if not existing.is_dir():
+            raise EngineError(f"cannot create folder {path}: {existing} is not a folder")
+        _probe_folder(existing, path)
+        return
+    if path.is_dir():
+        raise EngineError(f"cannot write {path}: it is a folder")
+    if not path.parent.is_dir():
+        raise EngineError(f"cannot write {path}: folder {path.parent} does not exist")
+    _probe_folder(path.parent, path)
+
+
+def remove_stale_temporaries(path) -> int:
+    """Delete the temporary files that interrupted atomic writes of `path` left (a process killed
+    mid-write cannot clean up). Only call this while no other process writes `path`."""
+    path = Path(path)
+    removed = 0
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            tmp.unlink()
+            removed += 1
+        except OSError:
+            pass
+    return removed
+
+
+def _try_lock(fd: int) -> bool:
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        try:
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+            return True
+        except OSError:
+            return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
+
+
+@contextlib.contextmanager
+def folder_lock(folder, name: str = ".lock", holder: str = "another process"):
+    """Hold `folder/name` exclusively for the block; EngineError at once if someone else holds it.
+
+    The lock is the kernel's (flock), not the file's existence: a file left by a killed process
+    locks nothing. The file is removed when the block ends."""
+    lock_path = Path(folder) / name
+    while True:
+        try:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+        except OSError as exc:
+            raise write_error(lock_path, exc) from None
+        if not _try_lock(fd):
+            try:
+                pid = os.read(fd, 32).decode("ascii", "replace").strip()
+            finally:
+                os.close(fd)
+            by = f" (process {pid})" if pid.isdigit() else ""
+            raise EngineError(f"{folder} is in use by {holder}{by}, which holds {lock_path}; "
+                              "wait for it to finish or choose another folder")
+        # The previous holder may have removed the file between our open and our lock: then we
+        # locked a file nobody else will see, so take the one now at the path instead.
+        try:
+            same = os.fstat(fd).st_ino == os.stat(lock_path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode("ascii"))  # for the message of whoever is refused
+        except OSError:
+            pass  # a full disk: the lock holds without it
+        yield lock_path
+    finally:
+        try:
+            os.unlink(lock_path)
+        except OSError:
+            pass
+        os.close(fd)

@@ -57,3 +57,66 @@ def test_building_a_cage_writes_nothing_into_the_working_directory(tmp_path, mon
     monkeypatch.chdir(tmp_path)
     build_cage(v, boundary_faces(t), margin=0.05)
     assert list(tmp_path.iterdir()) == []  # fTetWild's scratch file went to a temporary folder
+
+
+_BUILD_TWICE = """
+ckpt, blend = {ckpt!r}, {blend!r}
+from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+
+assert bpy.ops.nerf_deform.load_nerf(filepath=ckpt) == {{"FINISHED"}}
+nerf = bpy.context.active_object
+nerf.nerf_deform.resolution = 48
+assert bpy.ops.nerf_deform.extract_mesh() == {{"FINISHED"}}
+surface = nerf.nerf_deform.surface
+counts = []
+
+
+def build():
+    bpy.context.view_layer.objects.active = nerf
+    assert bpy.ops.nerf_deform.build_cage() == {{"FINISHED"}}
+    rest, tets = load_cage(nerf.nerf_deform.cage.data)
+    tet_ids, _weights = load_embedding(surface.data)
+    assert tet_ids.max() < len(tets) and len(tet_ids) == len(surface.data.vertices)
+    counts.append(len(rest))
+
+
+build()
+build()  # over the first cage's ID-property arrays, of another length
+top = np.flatnonzero(surface_co(surface)[:, 2] > 0.5)
+select(surface, top)
+assert bpy.ops.nerf_deform.add_handle() == {{"FINISHED"}}
+bpy.context.active_object.location.z += 0.15
+bpy.context.view_layer.update()
+build()  # with a handle, and its preview shape key
+build()
+camera()
+bpy.ops.wm.save_as_mainfile(filepath=blend)
+print("CAGE VERTICES", counts)
+"""
+
+_REOPEN_AND_RENDER = """
+from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+
+bpy.ops.wm.open_mainfile(filepath={blend!r})
+(nerf,) = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
+rest, tets = load_cage(nerf.nerf_deform.cage.data)
+load_embedding(nerf.nerf_deform.surface.data)
+image = render({png!r})
+print("ALPHA", image[..., 3].max())
+"""
+
+
+@pytest.mark.slow
+def test_building_the_cage_again_then_saving_reopening_and_rendering_in_fresh_processes(sphere_nerf, tmp_path):
+    """Build Cage over an earlier cage (fTetWild's vertex count differs on every run) rewrote ID
+    property arrays of another length in place: bpy 5.0.1 corrupted its heap and Blender crashed,
+    then or at exit. Two processes, each must exit cleanly: one builds the cage four times (twice
+    with a moved handle) and saves, one reopens the file and renders the deformed frame."""
+    from fixtures.processes import SCENE_HELPERS, assert_clean, run_blender
+
+    ckpt, _ = sphere_nerf
+    blend, png = tmp_path / "rebuilt.blend", tmp_path / "frame.png"
+    out = assert_clean(run_blender(SCENE_HELPERS + _BUILD_TWICE.format(ckpt=str(ckpt), blend=str(blend)), cwd=tmp_path))
+    assert "CAGE VERTICES" in out
+    out = assert_clean(run_blender(SCENE_HELPERS + _REOPEN_AND_RENDER.format(blend=str(blend), png=str(png)), cwd=tmp_path))
+    assert float(out.split("ALPHA")[-1].split()[0]) > 0.5

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from .. import backend
+from ..errors import EngineError
 from ..geometry.barycentric import deformed_to_rest_affines, inversion_report, tet_inverses, tet_matrices
 from ..geometry.locate import TetLocator
 from ..nerf.occupancy import OccupancyGrid
@@ -99,6 +100,9 @@ class CageBend:
         self.rotation = torch.as_tensor(rotation, **f32).contiguous()
         # A flat tet holds no volume: locate among the others, and map their indices back.
         located = np.setdiff1d(np.arange(len(self.tets)), bad)
+        if len(located) == 0:
+            raise EngineError(f"the pose collapsed the cage: all {len(self.tets)} tets are degenerate (flattened to "
+                              "zero volume), so no sample can be mapped through it; ease the pose")
         self.deformed = TetLocator(deformed, self.tets[located], device=self.device)
         self.located_tets = torch.as_tensor(located, dtype=torch.int64, device=self.device)
         self.deformed_bounds = np.stack([deformed.min(0), deformed.max(0)])
@@ -176,6 +180,13 @@ class CageBend:
             bend_kernels.cell_images(self._cell_ijk, self._corner_tet, self._rest_lo, self._rest_cell, forward, lo_c, hi_c)
         else:
             lo_c, hi_c = self._cell_images_torch(forward)
+        # A NaN box (a rest tet too thin to invert) would become a wild index in the marking kernel.
+        finite = np.isfinite(lo_c).all(axis=1) & np.isfinite(hi_c).all(axis=1)
+        if not finite.all():
+            lo_c, hi_c = lo_c[finite], hi_c[finite]
+        if len(lo_c) == 0:
+            return OccupancyGrid.from_mask(torch.as_tensor(model_box, dtype=torch.float32, device=self.device),
+                                           torch.zeros((1, 1, 1), dtype=torch.bool, device=self.device))
         # A grid with the NeRF grid's cells, on its lattice, grown to hold every image (up to a size cap).
         cell = self._rest_cell
         first = np.floor((lo_c.min(0) - self._rest_lo) / cell + 1e-6)

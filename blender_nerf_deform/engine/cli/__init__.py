@@ -45,6 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/nerf.ckpt when it exists")
+    p.add_argument("--overwrite", action="store_true", help="replace RUN_DIR/nerf.ckpt when it exists "
+                   "(without --resume or --overwrite an existing checkpoint is an error)")
     p.add_argument("--checkpoint-every", type=float, default=120.0, metavar="S", help="rewrite the checkpoint every S seconds (default 120)")
     p.set_defaults(handler=_command("train"))
 

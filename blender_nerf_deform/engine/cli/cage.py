@@ -6,12 +6,15 @@
 
 from __future__ import annotations
 
-from ..geometry.cage import build_nerf_cage, vertices_outside
+from ..files import check_writable
+from ..geometry.cage import build_nerf_cage, check_cage_options, vertices_outside
 from ..geometry.mesh_io import read_ply, save_cage
 from ..nerf.checkpoint import load_nerf
 
 
 def main(args) -> int:
+    check_cage_options(args.margin, args.edge_length, args.target_tets, args.threshold)
+    check_writable(args.out)
     verts, faces, _ = read_ply(args.mesh)
     nerf = load_nerf(args.nerf)
     cage = build_nerf_cage(verts, faces, nerf, args.margin, args.threshold,

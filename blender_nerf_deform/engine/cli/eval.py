@@ -14,7 +14,7 @@ from ..nerf.evaluate import evaluate
 
 def main(args) -> int:
     model = load_nerf(args.nerf, device=args.device or "auto")
-    ds = load_dataset(args.data, downscale=args.downscale or 1)
+    ds = load_dataset(args.data, downscale=args.downscale)
     from tqdm import tqdm
 
     with tqdm(total=len(ds), unit="frame", dynamic_ncols=True) as bar:

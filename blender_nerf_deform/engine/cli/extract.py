@@ -6,12 +6,16 @@
 
 from __future__ import annotations
 
-from ..geometry.extract import extract_nerf_mesh
+from ..files import check_writable
+from ..geometry.extract import check_extract_options, extract_nerf_mesh
 from ..geometry.mesh_io import write_ply
 from ..nerf.checkpoint import load_nerf
 
 
 def main(args) -> int:
+    # Before minutes of sampling: the options, then the destination.
+    check_extract_options(args.resolution, args.threshold, args.min_volume, args.decimate)
+    check_writable(args.out)
     nerf = load_nerf(args.nerf, device=args.device or "auto")
     res = extract_nerf_mesh(nerf, resolution=args.resolution, threshold=args.threshold, min_volume=args.min_volume,
                             decimate=args.decimate, progress=True)

@@ -9,7 +9,9 @@ is written to a temporary file and renamed. With --cage/--deformed every frame
 is ray-bent through the cage (bend/): one pose for all frames (V.npy), or a
 folder of poses matched to the frames in natural name order (geometry/poses.py);
 every pose is checked before the first frame renders, and each bent frame
-prints how many tets its pose inverts or flattens.
+prints how many tets its pose inverts or flattens. DIR is checked for writing
+before anything loads; a run that fails before its first frame removes the DIR
+it created.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 from ..bend.posed import PosedRenderer
 from ..errors import EngineError
-from ..files import write_png_rgba
+from ..files import check_writable, write_png_rgba
 from ..geometry.mesh_io import load_cage
 from ..geometry.poses import load_poses
 from ..nerf.checkpoint import load_nerf
@@ -28,28 +30,33 @@ from ..nerf.dataset import load_dataset
 def main(args) -> int:
     if (args.cage is None) != (args.deformed is None):
         raise EngineError("--cage and --deformed go together: give both or neither")
-    cams = load_dataset(args.cameras, downscale=args.downscale or 1, load_images=False)
+    cams = load_dataset(args.cameras, downscale=args.downscale, load_images=False)
     names = [c.name for c in cams.cameras]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})[0]
         raise EngineError(f"{cams.source}: two frames are both named {dup!r}; their PNGs would overwrite each other")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise EngineError(f"--out {out}: exists and is not a folder")
+    check_writable(out, folder=True)
     cage = poses = None
     if args.cage is not None:
         cage = load_cage(args.cage)
-        poses = load_poses(cage["vertices"], args.deformed, len(cams.cameras))
+        poses = load_poses(cage["vertices"], args.deformed, len(cams.cameras), tets=cage["tets"])
     model = load_nerf(args.nerf, device=args.device or "auto")
     renderer = PosedRenderer(model, cage["vertices"], cage["tets"]) if cage is not None else PosedRenderer(model)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 
-    bar = tqdm(cams.cameras, unit="frame", dynamic_ncols=True)
-    for k, cam in enumerate(bar):
-        result = renderer.render(cam, poses[k] if poses is not None else None)
-        if result["inversion"] is not None:
-            bar.write(f"frame {cam.name}: {result['inversion'].summary()}")
-        write_png_rgba(out / f"{cam.name}.png", result["rgba"])
+    try:
+        bar = tqdm(cams.cameras, unit="frame", dynamic_ncols=True)
+        for k, cam in enumerate(bar):
+            result = renderer.render(cam, poses[k] if poses is not None else None)
+            if result["inversion"] is not None:
+                bar.write(f"frame {cam.name}: {result['inversion'].summary()}")
+            write_png_rgba(out / f"{cam.name}.png", result["rgba"])
+    except EngineError:
+        if created and not any(out.iterdir()):
+            out.rmdir()
+        raise
     print(f"wrote {len(cams)} frames to {out}")
     return 0

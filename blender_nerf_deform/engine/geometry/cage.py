@@ -104,6 +104,33 @@ def _closed_mesh_problem(vertices, faces, merge: bool) -> tuple[int, str] | None
     return None
 
 
+def _positive(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and bool(np.isfinite(x)) and x > 0
+
+
+def check_cage_options(margin=None, edge_length=None, target_tets=None, threshold=None) -> None:
+    """EngineError for cage options that cannot build a cage (None means the default), before any work."""
+    if margin is not None and not _positive(margin):
+        raise EngineError(f"--margin must be a positive finite distance (world units), got {margin!r}")
+    if edge_length is not None and not _positive(edge_length):
+        raise EngineError(f"--edge-length must be a positive finite length (world units), got {edge_length!r}")
+    if target_tets is not None and (not isinstance(target_tets, (int, np.integer)) or isinstance(target_tets, bool)
+                                    or target_tets < 1):
+        raise EngineError(f"--target-tets must be a positive number of tets, got {target_tets!r}")
+    if threshold is not None and not (_positive(threshold) or threshold == 0):
+        raise EngineError(f"--threshold must be a finite density >= 0, got {threshold!r}")
+
+
+def _check_mesh_arrays(V: np.ndarray, F: np.ndarray, name: str) -> None:
+    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
+        raise EngineError(f"{name} must have (N, 3) vertices and (F, 3) triangles, got {V.shape} and {F.shape}")
+    bad = np.flatnonzero(~np.isfinite(V).all(axis=1))
+    if len(bad):
+        raise EngineError(f"{name}: vertex {bad[0]} has non-finite coordinates ({len(bad)} of {len(V)} vertices do)")
+    if F.size and (F.min() < 0 or F.max() >= len(V)):
+        raise EngineError(f"{name} has faces indexing vertices outside 0..{len(V) - 1}")
+
+
 @dataclass
 class Cage:
     vertices: np.ndarray  # (N, 3) float64
@@ -175,8 +202,10 @@ def build_cage(
     """
     import igl
 
+    check_cage_options(margin, edge_length, target_tets)
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
+    _check_mesh_arrays(V, F, "mesh")
     if check_mesh:
         check_closed_mesh(V, F)
     diag = float(np.linalg.norm(V.max(0) - V.min(0)))
@@ -271,8 +300,10 @@ def build_nerf_cage(vertices: np.ndarray, faces: np.ndarray, nerf, margin: float
     """
     from .extract import DEFAULT_THRESHOLD, density_fn_of
 
+    check_cage_options(margin, edge_length, target_tets, threshold)
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
+    _check_mesh_arrays(V, F, name)
     check_closed_mesh(V, F, name=name)
     density = density_fn_of(nerf)
     margin = margin if margin is not None else DEFAULT_MARGIN_FRACTION * float(np.linalg.norm(np.ptp(V, axis=0)))

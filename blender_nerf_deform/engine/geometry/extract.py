@@ -78,6 +78,59 @@ class ExtractResult:
         return "\n".join(lines)
 
 
+MAX_RESOLUTION = 2048
+# Peak bytes per grid sample while extracting: the float32 grid, its padded copy, and the
+# temporaries of moving samples off the level (marching cubes reads the padded copy in place).
+BYTES_PER_SAMPLE = 16
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+
+def check_extract_options(resolution=None, threshold=None, min_volume=None, decimate=None) -> None:
+    """EngineError for options extraction cannot use (None means the default), before any sampling."""
+    if resolution is not None and (not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool)
+                                   or not 2 <= resolution <= MAX_RESOLUTION):
+        raise EngineError(f"--resolution must be an integer from 2 to {MAX_RESOLUTION}, got {resolution!r}")
+    if threshold is not None and not (_is_number(threshold) and np.isfinite(threshold) and threshold >= 0):
+        raise EngineError(f"--threshold must be a finite density >= 0, got {threshold!r}")
+    if min_volume is not None and not (_is_number(min_volume) and np.isfinite(min_volume) and min_volume >= 0):
+        raise EngineError(f"--min-volume must be a finite volume >= 0, got {min_volume!r}")
+    if decimate is not None and (not isinstance(decimate, (int, np.integer)) or isinstance(decimate, bool) or decimate < 4):
+        raise EngineError(f"--decimate must be a face count of at least 4, got {decimate!r}")
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux MemAvailable, else free pages), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import os
+
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB"
+
+
+def check_grid_memory(resolution: int) -> None:
+    """EngineError, before sampling, when the grid of `resolution`^3 samples cannot fit in memory."""
+    need = BYTES_PER_SAMPLE * float(resolution) ** 3
+    free = available_memory()
+    if free is not None and need > free:
+        raise EngineError(f"extraction at resolution {resolution} needs about {_gib(need)} of memory "
+                          f"({resolution}^3 density samples), but only {_gib(free)} is available: lower the resolution")
+
+
 def _bounds(bounds) -> np.ndarray:
     b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
     if not np.all(b[1] > b[0]):
@@ -87,8 +140,9 @@ def _bounds(bounds) -> np.ndarray:
 
 def sample_grid(density_fn: DensityFn, bounds, resolution: int = DEFAULT_RESOLUTION, chunk: int = 1 << 18, progress: bool = False) -> np.ndarray:
     """(R, R, R) float32 densities at the grid's corner points, x fastest-varying last (index [i, j, k] = x_i, y_j, z_k)."""
-    if resolution < 2 or resolution > 2048:
-        raise EngineError(f"grid resolution must be between 2 and 2048, got {resolution}")
+    if resolution < 2 or resolution > MAX_RESOLUTION:
+        raise EngineError(f"grid resolution must be between 2 and {MAX_RESOLUTION}, got {resolution}")
+    check_grid_memory(resolution)
     b = _bounds(bounds)
     axes = [np.linspace(b[0, i], b[1, i], resolution) for i in range(3)]
     grid = np.empty((resolution,) * 3, dtype=np.float32)
@@ -187,6 +241,7 @@ def extract_mesh(
     """Surface of {density > threshold} over `bounds`, floaters removed. See the module docstring."""
     from skimage.measure import marching_cubes
 
+    check_extract_options(resolution if grid is None else None, threshold, min_volume, decimate)
     b = _bounds(bounds)
     timings = {}
     t0 = time.perf_counter()
@@ -297,11 +352,13 @@ def colour_fn_of(nerf, chunk: int = 1 << 16) -> ColourFn:
 def extract_nerf_mesh(nerf, resolution: int | None = None, threshold: float | None = None,
                       min_volume: float | None = None, decimate: int | None = None, progress: bool = False) -> ExtractResult:
     """The surface of a loaded NeRF over its bounds, floaters dropped, vertex colours from the NeRF
-    (what `extract` writes and the add-on's Extract Mesh imports). None or 0 means the default."""
+    (what `extract` writes and the add-on's Extract Mesh imports). None means the default (a
+    min_volume of 0 too: "automatic" in the add-on); a resolution of 0 is an error."""
+    check_extract_options(resolution, threshold, min_volume, decimate)
     return extract_mesh(
         density_fn_of(nerf),
         nerf.aabb.detach().cpu().numpy().reshape(2, 3),
-        resolution=int(resolution or DEFAULT_RESOLUTION),
+        resolution=int(resolution if resolution is not None else DEFAULT_RESOLUTION),
         threshold=float(threshold) if threshold is not None else DEFAULT_THRESHOLD,
         min_volume=float(min_volume) if min_volume else None,
         colour_fn=colour_fn_of(nerf),

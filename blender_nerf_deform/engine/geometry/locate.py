@@ -107,6 +107,12 @@ class TetLocator:
         T = _tensor(tets, torch.int64, self.device)
         if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
             raise EngineError(f"a cage needs (N, 3) vertices and (M>0, 4) tets, got {tuple(V.shape)} and {tuple(T.shape)}")
+        # The kernels index vertices by tets and cells by coordinates without bounds checks.
+        if not bool(torch.isfinite(V).all()):
+            bad = int(torch.nonzero(~torch.isfinite(V).all(1))[0])
+            raise EngineError(f"cage vertices must be finite: vertex {bad} is {V[bad].tolist()}")
+        if int(T.min()) < 0 or int(T.max()) >= len(V):
+            raise EngineError(f"cage tets index vertices outside 0..{len(V) - 1}")
         self.vertices, self.tets = V, T
         if backend == "auto":
             backend = "numba" if code_path.use_kernels(self.device) else "torch"

@@ -95,10 +95,19 @@ if backend.HAVE_NUMBA:
         return min(score, s0 * gn[3])
 
     @njit(inline="always")
+    def _cell(g, res):
+        """floor(g) clamped to the cells 0..res-1 in floating point, before the cast: a NaN or huge
+        coordinate cannot turn into an index outside the grid (the cast of those is undefined)."""
+        g = np.floor(g)
+        if not g > 0.0:
+            return 0
+        if g > res - 1:
+            return res - 1
+        return int(g)
+
+    @njit(inline="always")
     def _cell_range(tlo, thi, t, c, glo, inv, res):
-        a = int(np.floor((tlo[t, c] - glo[c]) * inv[c]))
-        b = int(np.floor((thi[t, c] - glo[c]) * inv[c]))
-        return max(0, min(a, res[c] - 1)), max(0, min(b, res[c] - 1))
+        return _cell((tlo[t, c] - glo[c]) * inv[c], res[c]), _cell((thi[t, c] - glo[c]) * inv[c], res[c])
 
     @njit(parallel=True, cache=True)
     def bbox_counts(tlo, thi, glo, inv, res, counts):

@@ -12,6 +12,8 @@ never leaves a half-written file under the target name.
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -60,68 +62,110 @@ _PLY_TYPES = {
 }
 
 
+def _ply_header(path: Path, data: bytes) -> tuple[str, list, int]:
+    """(format, [[element name, count, properties]], offset of the body) of a PLY's header."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise EngineError(f"{path} is not a PLY file (no 'ply' magic or no end_header)")
+    newline = data.find(b"\n", end)
+    if newline < 0 or data[end + len(b"end_header"):newline].strip():
+        raise EngineError(f"{path}: the PLY header's end_header line has no newline after it (truncated file?)")
+    fmt, elements = None, []
+    for number, line in enumerate(data[:end].decode("ascii", "replace").splitlines(), start=1):
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "format" and len(tok) > 1:
+            fmt = tok[1]
+        elif tok[0] == "element":
+            if len(tok) != 3 or not tok[2].isdigit():
+                raise EngineError(f"{path}: header line {number} {line.strip()!r} must be 'element <name> <count>' "
+                                  "with a whole-number count")
+            elements.append([tok[1], int(tok[2]), []])
+        elif tok[0] == "property" and elements:
+            props = tok[1:]
+            types = props[1:3] if props and props[0] == "list" else props[:1]
+            if len(props) != (4 if props and props[0] == "list" else 2) or any(t not in _PLY_TYPES for t in types):
+                raise EngineError(f"{path}: header line {number} {line.strip()!r} is not a property of a known type")
+            elements[-1][2].append(props)
+    if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
+        raise EngineError(f"{path}: unsupported PLY format {fmt!r}")
+    return fmt, elements, newline + 1
+
+
+def _binary_element(path, data, offset, name, count, dtype) -> np.ndarray:
+    need = dtype.itemsize * count
+    if offset + need > len(data):
+        raise EngineError(f"{path} is truncated: element {name!r} needs {need} bytes at byte {offset}, "
+                          f"the file has {len(data) - offset} left")
+    return np.frombuffer(data, dtype, count, offset)
+
+
+def _ascii_rows(path, rows, pos, name, count) -> list[list[str]]:
+    if pos + count > len(rows):
+        raise EngineError(f"{path} is truncated: element {name!r} needs {count} rows, "
+                          f"the file has {max(len(rows) - pos, 0)} left")
+    return [r.split() for r in rows[pos : pos + count]]
+
+
 def read_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(vertices (N,3) float64, faces (F,3) int64, colours (N,3) uint8 or None). Triangles only."""
+    """(vertices (N,3) float64, faces (F,3) int64, colours (N,3) uint8 or None). Triangles only.
+
+    Every count, row and byte is checked against the header (a truncated or malformed file is an
+    EngineError naming it), and vertices must be finite."""
     path = Path(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise EngineError(f"cannot read mesh {path}: {exc.strerror}") from None
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise EngineError(f"{path} is not a PLY file (no 'ply' magic or no end_header)")
-    body_start = data.index(b"\n", end) + 1
-    lines = data[:end].decode("ascii", "replace").splitlines()
-    fmt, elements = None, []
-    for line in lines:
-        tok = line.split()
-        if not tok:
-            continue
-        if tok[0] == "format":
-            fmt = tok[1]
-        elif tok[0] == "element":
-            elements.append([tok[1], int(tok[2]), []])
-        elif tok[0] == "property" and elements:
-            elements[-1][2].append(tok[1:])
-    if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
-        raise EngineError(f"{path}: unsupported PLY format {fmt!r}")
+    fmt, elements, body_start = _ply_header(path, data)
     order = "<" if fmt == "binary_little_endian" else ">"
     verts = colors = faces = None
     if fmt == "ascii":
-        rows = data[body_start:].decode("ascii", "replace").split("\n")
+        rows = [r for r in data[body_start:].decode("ascii", "replace").splitlines() if r.strip()]
         pos = 0
     offset = body_start
     for name, count, props in elements:
         is_list = any(p[0] == "list" for p in props)
+        if is_list and (name != "face" or len(props) != 1):
+            raise EngineError(f"{path}: unsupported list element {name!r}")
         if fmt == "ascii":
-            chunk = rows[pos : pos + count]
+            chunk = _ascii_rows(path, rows, pos, name, count)
             pos += count
             if is_list:
-                if name == "face":
-                    lists = [np.array(r.split(), dtype=np.int64) for r in chunk]
-                    if any(len(l) == 0 or l[0] != 3 for l in lists):
-                        raise EngineError(f"{path}: only triangle faces are supported")
-                    faces = np.array([l[1:4] for l in lists], dtype=np.int64).reshape(-1, 3)
+                if any(len(r) != 4 or r[0] != "3" for r in chunk):
+                    bad = next(i for i, r in enumerate(chunk) if len(r) != 4 or r[0] != "3")
+                    raise EngineError(f"{path}: face {bad} is {' '.join(chunk[bad])!r}: only triangle faces "
+                                      "('3 i j k') are supported")
+                try:
+                    faces = np.array([r[1:] for r in chunk], dtype=np.int64).reshape(-1, 3)
+                except ValueError:
+                    raise EngineError(f"{path}: face indices must be whole numbers") from None
                 continue
-            table = np.array([r.split() for r in chunk], dtype=np.float64).reshape(count, len(props))
+            short = [i for i, r in enumerate(chunk) if len(r) != len(props)]
+            if short:
+                raise EngineError(f"{path}: {name} row {short[0]} has {len(chunk[short[0]])} values, the header "
+                                  f"declares {len(props)} properties")
+            try:
+                table = np.array(chunk, dtype=np.float64).reshape(count, len(props))
+            except ValueError:
+                raise EngineError(f"{path}: {name} rows hold values that are not numbers") from None
             cols = {p[1]: table[:, i] for i, p in enumerate(props)}
         else:
             if is_list:
-                if name != "face" or len(props) != 1:
-                    raise EngineError(f"{path}: unsupported list element {name!r}")
                 _, ctype, itype, _pname = props[0]
                 ct, it = np.dtype(order + _PLY_TYPES[ctype]), np.dtype(order + _PLY_TYPES[itype])
                 rec = np.dtype([("n", ct), ("i", it, (3,))])
-                if count and np.frombuffer(data, ct, 1, offset)[0] != 3:
+                if count and _binary_element(path, data, offset, name, 1, ct)[0] != 3:
                     raise EngineError(f"{path}: only triangle faces are supported")
-                arr = np.frombuffer(data, rec, count, offset)
+                arr = _binary_element(path, data, offset, name, count, rec)
                 if count and np.any(arr["n"] != 3):
                     raise EngineError(f"{path}: only triangle faces are supported")
                 faces = arr["i"].astype(np.int64)
                 offset += rec.itemsize * count
                 continue
             rec = np.dtype([(p[1], order + _PLY_TYPES[p[0]]) for p in props])
-            arr = np.frombuffer(data, rec, count, offset)
+            arr = _binary_element(path, data, offset, name, count, rec)
             offset += rec.itemsize * count
             cols = {p[1]: arr[p[1]] for p in props}
         if name == "vertex":
@@ -133,6 +177,10 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
                 colors = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8)
     if verts is None or faces is None:
         raise EngineError(f"{path}: a mesh needs vertex and face elements")
+    bad = np.flatnonzero(~np.isfinite(verts).all(axis=1))
+    if len(bad):
+        raise EngineError(f"{path}: vertex {bad[0]} has non-finite coordinates {verts[bad[0]].tolist()} "
+                          f"({len(bad)} of {len(verts)} vertices do)")
     if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
         raise EngineError(f"{path}: faces index vertices outside 0..{len(verts) - 1}")
     return verts, faces, colors
@@ -150,29 +198,55 @@ def save_cage(path, vertices: np.ndarray, tets: np.ndarray, **extra) -> None:
 
 
 def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
-    """Read a cage `.npz` (no pickles, so no code runs); checks shapes, indices and orientation."""
+    """Read a cage `.npz` (no pickles, so no code runs). Always checked: the file is an archive,
+    `vertices` are finite numbers (N,3), `tets` are (M,4) integers indexing them (the point-location
+    kernels read what they index unchecked). With `validate`, every tet must have positive volume."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            out = {k: z[k] for k in z.files}
+        with open(path, "rb") as f:
+            magic = f.read(6)
     except FileNotFoundError:
         raise EngineError(f"cage file {path} does not exist") from None
-    except (ValueError, OSError) as exc:
-        raise EngineError(f"cannot read cage {path}: {exc}") from None
+    except OSError as exc:
+        raise EngineError(f"cannot read cage {path}: {exc.strerror or exc}") from None
+    if magic.startswith(b"\x93NUMPY"):
+        raise EngineError(f"cannot read cage {path}: it is a single .npy array, not a cage .npz "
+                          "(an archive of `vertices` and `tets`)")
+    if not magic.startswith(b"PK"):
+        raise EngineError(f"cannot read cage {path}: it is not a cage file (not an .npz archive)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {}
+            for k in z.files:
+                try:
+                    out[k] = z[k]
+                except ValueError as exc:
+                    if "pickle" in str(exc):
+                        raise EngineError(f"cannot read cage {path}: array `{k}` holds Python objects (pickled "
+                                          "data), which a cage file never does") from None
+                    raise
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as exc:
+        raise EngineError(f"cannot read cage {path}: it is not a cage file ({str(exc).splitlines()[0][:160] or type(exc).__name__})") from None
     for key in ("vertices", "tets"):
         if key not in out:
             raise EngineError(f"cage {path} has no `{key}` array")
     V, T = out["vertices"], out["tets"]
     if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or not np.issubdtype(T.dtype, np.integer):
         raise EngineError(f"cage {path}: `vertices` must be (N,3) and `tets` (M,4) int, got {V.shape} and {T.shape} {T.dtype}")
+    if not (np.issubdtype(V.dtype, np.floating) or np.issubdtype(V.dtype, np.integer)):
+        raise EngineError(f"cage {path}: `vertices` must be numbers, got an array of {V.dtype}")
+    bad = np.flatnonzero(~np.isfinite(V).all(axis=1))
+    if len(bad):
+        raise EngineError(f"cage {path}: vertex {bad[0]} has non-finite coordinates {V[bad[0]].tolist()} "
+                          f"({len(bad)} of {len(V)} vertices do)")
+    if len(T) == 0:
+        raise EngineError(f"cage {path} has no tets")
+    if T.min() < 0 or T.max() >= len(V):
+        raise EngineError(f"cage {path}: tets index vertices outside 0..{len(V) - 1}")
     out["vertices"], out["tets"] = V.astype(np.float64), T.astype(np.int64)
     if validate:
         from .barycentric import signed_volumes  # pure numpy
 
-        if len(T) == 0:
-            raise EngineError(f"cage {path} has no tets")
-        if T.min() < 0 or T.max() >= len(V):
-            raise EngineError(f"cage {path}: tets index vertices outside 0..{len(V) - 1}")
         vol = signed_volumes(out["vertices"], out["tets"])
         scale = float(np.ptp(V, axis=0).max()) ** 3
         bad = np.flatnonzero(vol <= 1e-12 * scale)

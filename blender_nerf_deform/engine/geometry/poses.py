@@ -43,7 +43,7 @@ def load_pose(path, vertex_shape: tuple) -> np.ndarray:
     except (ValueError, OSError) as exc:
         raise EngineError(f"cannot read deformed vertices {path}: {exc}") from None
     if not isinstance(deformed, np.ndarray) or deformed.ndim != 2 or deformed.shape[1] != 3 \
-            or not np.issubdtype(deformed.dtype, np.number):
+            or not (np.issubdtype(deformed.dtype, np.floating) or np.issubdtype(deformed.dtype, np.integer)):
         shape = getattr(deformed, "shape", None)
         raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
                           f"(same vertices, same order), got {shape}")
@@ -58,11 +58,25 @@ def load_pose(path, vertex_shape: tuple) -> np.ndarray:
     return deformed.astype(np.float64)
 
 
-def load_poses(cage_vertices: np.ndarray, deformed_path, n_frames: int) -> list[np.ndarray]:
-    """One checked pose per frame: a single file repeated, or a folder's files matched to frames in order."""
+def check_not_collapsed(path, rest_vertices: np.ndarray, deformed: np.ndarray, tets: np.ndarray) -> None:
+    """EngineError when a pose flattens every tet of the cage: nothing could be located in it."""
+    from .barycentric import inversion_report  # pure numpy
+
+    report = inversion_report(rest_vertices, deformed, tets)
+    if len(tets) and report.n_degenerate == len(tets):
+        raise EngineError(f"{path}: the pose collapsed the cage: all {len(tets)} tets are degenerate (flattened "
+                          "to zero volume), so no sample can be mapped through it")
+
+
+def load_poses(cage_vertices: np.ndarray, deformed_path, n_frames: int, tets: np.ndarray | None = None) -> list[np.ndarray]:
+    """One checked pose per frame: a single file repeated, or a folder's files matched to frames in order.
+    With the cage's `tets`, a pose that collapses the whole cage is refused too."""
     files = pose_files(deformed_path)
     if Path(deformed_path).is_dir() and len(files) != n_frames:
         raise EngineError(f"--deformed {deformed_path}: {len(files)} pose files (.npy) for {n_frames} camera frames "
                           "in --cameras; give one pose per frame")
     poses = [load_pose(f, cage_vertices.shape) for f in files]
+    if tets is not None:
+        for f, pose in zip(files, poses):
+            check_not_collapsed(f, cage_vertices, pose, tets)
     return poses if len(poses) == n_frames else poses * n_frames

@@ -66,10 +66,45 @@ def read_checkpoint(path) -> dict:
     return data
 
 
+def _tensor(container: dict, key: str, path, where: str) -> torch.Tensor:
+    value = container.get(key) if isinstance(container, dict) else None
+    if not isinstance(value, torch.Tensor):
+        raise EngineError(f"{path}: checkpoint `{where}` has no tensor `{key}`")
+    return value
+
+
+def _check_arrays(data: dict, path) -> None:
+    """Every array a kernel will index or a render will sum: a NaN box turns into out-of-bounds
+    indices in the hash kernel, NaN weights into fully transparent frames."""
+    if not isinstance(data["state"], dict) or not isinstance(data["occupancy"], dict):
+        raise EngineError(f"{path}: checkpoint `state` and `occupancy` must be dicts of tensors")
+    aabb = _tensor(data["state"], "aabb", path, "state")
+    if aabb.numel() != 6 or not aabb.is_floating_point():
+        raise EngineError(f"{path}: checkpoint `aabb` has {aabb.numel()} values of {aabb.dtype}, expected 6 floats")
+    box = aabb.detach().double().reshape(2, 3)
+    if not torch.isfinite(box).all() or not (box[1] > box[0]).all():
+        raise EngineError(f"{path}: checkpoint `aabb` {box.tolist()} is not a finite box (max > min on every axis)")
+    for name, value in data["state"].items():
+        if not isinstance(value, torch.Tensor):
+            raise EngineError(f"{path}: checkpoint `state.{name}` is not a tensor")
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise EngineError(f"checkpoint {path} has non-finite weights (a diverged training run?): `{name}` holds NaN or inf")
+    density = _tensor(data["occupancy"], "density", path, "occupancy")
+    if not density.is_floating_point() or not bool(torch.isfinite(density).all()):
+        raise EngineError(f"{path}: checkpoint `occupancy.density` holds NaN or inf (a diverged training run?)")
+    _tensor(data["occupancy"], "mask", path, "occupancy")
+
+
 def load_nerf(path, device="auto") -> NerfModel:
-    """Rebuild the NerfModel stored at `path` on `device` ("auto", "cpu", "cuda" or a torch.device)."""
+    """Rebuild the NerfModel stored at `path` on `device` ("auto", "cpu", "cuda" or a torch.device).
+
+    Everything read from the file is checked (config ranges, finite box and weights, the
+    occupancy grid's size) before any kernel sees it; EngineError naming the file otherwise."""
     data = read_checkpoint(path)
     dev = device if isinstance(device, torch.device) else resolve_device(device)
+    if not isinstance(data["config"], dict):
+        raise EngineError(f"{path}: checkpoint `config` is not a dict")
+    _check_arrays(data, path)
     try:
         config = NerfConfig.from_dict(dict(data["config"]))
         model = NerfModel(config)
@@ -77,8 +112,10 @@ def load_nerf(path, device="auto") -> NerfModel:
         occ = data["occupancy"]
         model.occupancy.density = occ["density"].float().reshape(-1)
         model.occupancy.mask = occ["mask"].bool().reshape(-1)
-        if model.occupancy.mask.numel() != model.occupancy.resolution**3:
-            raise ValueError("occupancy grid size does not match the config")
+        n_cells = model.occupancy.resolution**3
+        if model.occupancy.mask.numel() != n_cells or model.occupancy.density.numel() != n_cells:
+            raise ValueError(f"occupancy grid of {model.occupancy.mask.numel()} cells, the config's "
+                             f"occ_resolution {config.occ_resolution} needs {n_cells}")
     except EngineError as exc:
         raise EngineError(f"{path}: {exc}") from None
     except (RuntimeError, TypeError, ValueError, KeyError) as exc:

@@ -83,8 +83,9 @@ class HashEncoding(torch.nn.Module):
         return self.n_levels * self.n_features
 
     def indices_and_weights(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Global table rows (N, L, 8) int64 and trilinear weights (N, L, 8) of points x in [0,1]^3."""
-        x = x.clamp(0.0, 1.0)
+        """Global table rows (N, L, 8) int64 and trilinear weights (N, L, 8) of points x in [0,1]^3
+        (clamped; NaN counts as 0, as in the CPU kernels, so no row falls outside the table)."""
+        x = torch.nan_to_num(x, nan=0.0).clamp(0.0, 1.0)
         pos = x[:, None, :] * self.res_f[None, :, None]  # (N, L, 3)
         base = pos.floor()
         frac = pos - base  # (N, L, 3)

@@ -23,7 +23,20 @@ if backend.HAVE_NUMBA:
     from numba import njit, prange
 
 
+# fastmath without its no-NaN / no-inf assumptions: with them LLVM may drop the NaN test of
+# `_unit` below, and a NaN position becomes an out-of-bounds row (a segfault, not an error).
+FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
 if backend.HAVE_NUMBA:
+
+    @njit(cache=True, fastmath=FAST, inline="always")
+    def _unit(v):
+        """v clamped to [0, 1], NaN to 0: every corner row then lies in its level's table."""
+        if not v > 0.0:
+            return 0.0
+        if v > 1.0:
+            return 1.0
+        return v
 
     @njit(cache=True, fastmath=False, inline="always")
     def _row(cx, cy, cz, res, dense, size, offset):
@@ -38,7 +51,7 @@ if backend.HAVE_NUMBA:
         # int64 arithmetic: the low 32 bits equal instant-ngp's uint32 hash, and size is a power of two.
         return offset + ((cx ^ (cy * 2654435761) ^ (cz * 805459861)) & (size - 1))
 
-    @njit(parallel=True, cache=True, fastmath=True)
+    @njit(parallel=True, cache=True, fastmath=FAST)
     def _hash_forward(x, table, res_arr, dense_arr, size_arr, off_arr, out):
         # Blocks of points in parallel; inside a block, level by level, so that the rows one
         # level touches (at most 2^log2T x F floats) stay in cache while the block is served.
@@ -56,9 +69,9 @@ if backend.HAVE_NUMBA:
                 size = size_arr[lvl]
                 off = off_arr[lvl]
                 for i in range(start, stop):
-                    fx = min(max(x[i, 0], 0.0), 1.0) * res
-                    fy = min(max(x[i, 1], 0.0), 1.0) * res
-                    fz = min(max(x[i, 2], 0.0), 1.0) * res
+                    fx = _unit(x[i, 0]) * res
+                    fy = _unit(x[i, 1]) * res
+                    fz = _unit(x[i, 2]) * res
                     bx = np.int64(np.floor(fx))
                     by = np.int64(np.floor(fy))
                     bz = np.int64(np.floor(fz))
@@ -103,7 +116,7 @@ if backend.HAVE_NUMBA:
                             for f in range(nf):
                                 out[i, lvl * nf + f] += w * table[row, f]
 
-    @njit(parallel=True, cache=True, fastmath=True)
+    @njit(parallel=True, cache=True, fastmath=FAST)
     def _hash_backward(x, grad_out, res_arr, dense_arr, size_arr, off_arr, grad_table, touched):
         n = x.shape[0]
         n_levels = res_arr.shape[0]
@@ -117,9 +130,9 @@ if backend.HAVE_NUMBA:
             size = size_arr[lvl]
             off = off_arr[lvl]
             for i in range(n):
-                fx = min(max(x[i, 0], 0.0), 1.0) * res
-                fy = min(max(x[i, 1], 0.0), 1.0) * res
-                fz = min(max(x[i, 2], 0.0), 1.0) * res
+                fx = _unit(x[i, 0]) * res
+                fy = _unit(x[i, 1]) * res
+                fz = _unit(x[i, 2]) * res
                 bx = np.int64(np.floor(fx))
                 by = np.int64(np.floor(fy))
                 bz = np.int64(np.floor(fz))

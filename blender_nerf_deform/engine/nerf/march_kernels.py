@@ -13,24 +13,38 @@ import torch
 
 from .. import backend
 
+# fastmath without its no-NaN / no-inf assumptions, which would let LLVM drop the tests that keep
+# a NaN or infinite sample (a NaN box, a wild ray) from becoming an out-of-bounds mask index.
+FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+MAX_STEPS_PER_RAY = 1 << 31  # a ray longer than this many steps is no ray of a finite scene
+
 if backend.HAVE_NUMBA:
     from numba import njit, prange
 
-    @njit(inline="always", fastmath=True)
+    @njit(inline="always", fastmath=FAST)
     def _occupied_at(o, d, ray, t, lo, scale, r, mask):
-        """Whether the sample at t lies in an occupied cell; False outside the grid (as OccupancyGrid.occupied)."""
+        """Whether the sample at t lies in an occupied cell; False outside the grid (as OccupancyGrid.occupied),
+        and for non-finite coordinates (every comparison with NaN is False)."""
         fx = np.floor((o[ray, 0] + d[ray, 0] * t - lo[0]) * scale[0])
         fy = np.floor((o[ray, 1] + d[ray, 1] * t - lo[1]) * scale[1])
         fz = np.floor((o[ray, 2] + d[ray, 2] * t - lo[2]) * scale[2])
-        if fx < 0 or fy < 0 or fz < 0 or fx >= r or fy >= r or fz >= r:
+        if not (fx >= 0 and fy >= 0 and fz >= 0 and fx < r and fy < r and fz < r):
             return False
         return mask[int(fx) + r * int(fy) + r * r * int(fz)] != 0
 
-    @njit(parallel=True, cache=True, fastmath=True)
+    @njit(inline="always", fastmath=FAST)
+    def _steps(t0, t1, step):
+        """Lattice steps between t0 and t1; 0 for NaN or absurd spans (the float-to-int cast would be undefined)."""
+        span = np.ceil((t1 - t0) / step)
+        if not (span > 0 and span < MAX_STEPS_PER_RAY):
+            return 0
+        return int(span)
+
+    @njit(parallel=True, cache=True, fastmath=FAST)
     def _march_count(o, d, t0, t1, u, step, lo, scale, r, mask, counts):
         for ray in prange(o.shape[0]):
             n = 0
-            k_max = int(np.ceil((t1[ray] - t0[ray]) / step))
+            k_max = _steps(t0[ray], t1[ray], step)
             for k in range(k_max):
                 t = t0[ray] + (k + u[ray]) * step
                 if t >= t1[ray]:
@@ -39,11 +53,11 @@ if backend.HAVE_NUMBA:
                     n += 1
             counts[ray] = n
 
-    @njit(parallel=True, cache=True, fastmath=True)
+    @njit(parallel=True, cache=True, fastmath=FAST)
     def _march_fill(o, d, t0, t1, u, step, lo, scale, r, mask, starts, rays, ray_idx, ts):
         for ray in prange(o.shape[0]):
             n = starts[ray]
-            k_max = int(np.ceil((t1[ray] - t0[ray]) / step))
+            k_max = _steps(t0[ray], t1[ray], step)
             for k in range(k_max):
                 t = t0[ray] + (k + u[ray]) * step
                 if t >= t1[ray]:

@@ -49,11 +49,33 @@ class NerfConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "NerfConfig":
+        """The config of a plain dict (a checkpoint's), validated: EngineError naming the bad key."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names
         if unknown:
             raise EngineError(f"unknown NeRF config keys {sorted(unknown)}")
-        return cls(**d)
+        config = cls(**d)
+        config.validate()
+        return config
+
+    def validate(self) -> None:
+        """EngineError unless every field has a type and a value the model can be built from; a file's
+        config must not reach the kernels as a NaN box, a zero step or a table of 2^40 rows."""
+        for name, (lo, hi) in _INT_RANGES.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise EngineError(f"config `{name}` = {v!r} is invalid: it must be an integer from {lo} to {hi}")
+        if self.finest_resolution < self.base_resolution:
+            raise EngineError(f"config `finest_resolution` = {self.finest_resolution} is below `base_resolution` "
+                              f"= {self.base_resolution}")
+        for name, length in (("aabb", 6), ("background", 3)):
+            v = getattr(self, name)
+            if not isinstance(v, (list, tuple)) or len(v) != length or not all(_finite_number(x) for x in v):
+                raise EngineError(f"config `{name}` = {v!r} is invalid: it must be {length} finite numbers")
+        if not all(self.aabb[i + 3] > self.aabb[i] for i in range(3)):
+            raise EngineError(f"config `aabb` = {self.aabb!r} is not a box (max > min on every axis)")
+        if not _finite_number(self.occ_threshold) or self.occ_threshold < 0:
+            raise EngineError(f"config `occ_threshold` = {self.occ_threshold!r} is invalid: it must be a finite number >= 0")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -62,6 +84,20 @@ class NerfConfig:
     def render_step(self) -> float:
         lo, hi = self.aabb[:3], self.aabb[3:]
         return math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))) / self.steps_per_diagonal
+
+
+# Inclusive bounds of the integer fields: generous, but a model outside them cannot be built (memory)
+# or evaluated (sh_encode has degrees 1..4; a render step needs steps_per_diagonal >= 1).
+_INT_RANGES = {
+    "n_levels": (1, 32), "n_features": (1, 64), "log2_table_size": (1, 28), "base_resolution": (1, 1 << 20),
+    "finest_resolution": (1, 1 << 20), "density_hidden": (1, 4096), "geo_feat_dim": (0, 4096),
+    "color_hidden": (1, 4096), "color_layers": (0, 64), "sh_degree": (1, 4), "occ_resolution": (1, 1024),
+    "steps_per_diagonal": (1, 1 << 20),
+}
+
+
+def _finite_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 class _TruncExp(torch.autograd.Function):

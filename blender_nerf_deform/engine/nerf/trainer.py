@@ -30,9 +30,11 @@ import torch
 from .. import backend
 from . import adam_kernels
 from ..errors import EngineError
+from ..files import atomic_write, check_writable, folder_lock, interrupts_deferred, remove_stale_temporaries
 from .checkpoint import load_nerf, read_checkpoint, save_nerf
 from .dataset import NerfDataset, load_dataset
 from .model import NerfConfig, NerfModel, resolve_device
+from .lens import camera_directions
 from .renderer import render_rays
 
 
@@ -70,6 +72,11 @@ class Trainer:
         self.pixels = torch.from_numpy(dataset.images.reshape(-1, 4)).to(dev)
         self.c2w = torch.tensor(np.stack([c.c2w[:3, :4] for c in dataset.cameras]), dtype=torch.float32, device=dev)
         self.intr = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in dataset.cameras], dtype=torch.float32, device=dev)
+        # Distorted cameras: each distinct lens, and which one each image has (-1: pinhole).
+        self.lenses = sorted({c.distortion for c in dataset.cameras if c.distortion is not None and not c.distortion.is_identity},
+                             key=repr)
+        self.lens_of_image = torch.tensor([self.lenses.index(c.distortion) if c.distortion in self.lenses else -1
+                                           for c in dataset.cameras], dtype=torch.int64, device=dev)
         enc = model.encoding
         self.lazy_table = backend.use_kernels(dev)  # the table's lazy Adam needs the fused encoding kernels
         enc.fused_grad = self.lazy_table
@@ -100,6 +107,10 @@ class Trainer:
             i, j = i + 0.5, j + 0.5
         fx, fy, cx, cy = self.intr[img].unbind(-1)
         d_cam = torch.stack([(i - cx) / fx, -(j - cy) / fy, -torch.ones_like(i)], dim=-1)
+        for k, lens in enumerate(self.lenses):  # rays through the pixels as each lens bent them
+            sel = torch.nonzero(self.lens_of_image[img] == k).squeeze(1)
+            if len(sel):
+                d_cam[sel] = camera_directions(fx[sel], fy[sel], cx[sel], cy[sel], i[sel], j[sel], lens)
         c2w = self.c2w[img]
         d = (c2w[:, :, :3] @ d_cam[:, :, None])[:, :, 0]
         d = d / d.norm(dim=-1, keepdim=True)
@@ -190,19 +201,32 @@ class Trainer:
             s["table_m"], s["table_v"] = self.table_m.clone(), self.table_v.clone()
         return s
 
-    def load_state_dict(self, s: dict) -> None:
-        self.step_count = int(s["step"])
-        self.elapsed = float(s.get("elapsed", 0.0))
-        self.n_rays = int(s.get("n_rays", self.n_rays))
+    def load_state_dict(self, s: dict, where: str = "the trainer state") -> None:
+        try:
+            step, elapsed, n_rays = int(s["step"]), float(s.get("elapsed", 0.0)), int(s.get("n_rays", self.n_rays))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EngineError(f"{where}: the trainer state to resume is unreadable ({exc!r})") from None
+        if step < 0 or n_rays < 1 or not math.isfinite(elapsed):
+            raise EngineError(f"{where}: the trainer state to resume is invalid (step {step}, rays {n_rays}, "
+                              f"elapsed {elapsed})")
+        self.step_count, self.elapsed, self.n_rays = step, elapsed, min(n_rays, self.opt.max_rays)
         try:
             self.optimizer.load_state_dict(s["optimizer"])
-        except (ValueError, KeyError):
+        except (ValueError, KeyError, TypeError, RuntimeError):
             pass  # a checkpoint from the other optimizer layout: restart the moments
         if self.lazy_table and "table_m" in s:
-            self.table_m.copy_(s["table_m"])
-            self.table_v.copy_(s["table_v"])
+            m, v = s["table_m"], s.get("table_v")
+            if (isinstance(m, torch.Tensor) and isinstance(v, torch.Tensor) and m.shape == v.shape == self.table_m.shape
+                    and bool(torch.isfinite(m).all()) and bool(torch.isfinite(v).all())):
+                self.table_m.copy_(m)
+                self.table_v.copy_(v)
 
     def save(self, path) -> None:
+        """Write the checkpoint, unless training diverged: NaN weights would replace the last good one."""
+        for name, value in self.model.state_dict().items():
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise EngineError(f"training diverged at step {self.step_count}: `{name}` holds NaN or inf; "
+                                  f"{path} keeps the last good checkpoint (lower the learning rate or check the data)")
         save_nerf(self.model, path, trainer_state=self.state_dict())
 
     # --- the loop ----------------------------------------------------------------------------
@@ -242,39 +266,82 @@ class Trainer:
                 if should_stop is not None and should_stop():
                     break
         finally:
-            if bar is not None:
-                bar.close()
-            self.model.encoding.fused_grad = False  # back to ordinary .grad for whoever uses the model next
-            if self.opt.checkpoint_path:
-                self.save(self.opt.checkpoint_path)
+            # Ctrl-C waits while the last checkpoint is written: a second press must not lose the run.
+            with interrupts_deferred():
+                if bar is not None:
+                    bar.close()
+                self.model.encoding.fused_grad = False  # back to ordinary .grad for whoever uses the model next
+                if self.opt.checkpoint_path:
+                    self.save(self.opt.checkpoint_path)
         return {"steps": self.step_count, "seconds": self.elapsed, **self.last}
 
 
 DEFAULT_SECONDS = 300.0
+SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.manual_seed accepts
+LOCK_NAME = ".train.lock"
+
+
+def check_budget(steps=None, max_seconds=None, seed: int = 0, checkpoint_every: float = 120.0) -> None:
+    """EngineError for a budget or seed that cannot run, before anything is created."""
+    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
+        raise EngineError(f"--steps must be a positive integer, got {steps!r}")
+    for flag, value in (("--max-seconds", max_seconds), ("--checkpoint-every", checkpoint_every)):
+        if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise EngineError(f"{flag} must be a positive finite number of seconds, got {value!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
+        raise EngineError(f"--seed must be an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]} (64 bits), got {seed!r}")
 
 
 def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
                  checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
-                 seed: int = 0) -> dict:
+                 seed: int = 0, overwrite: bool = False) -> dict:
     """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
 
     `seed` seeds the initial weights as well as the trainer's sampling, so that a run of a fixed
     number of steps on the CPU repeats on the same machine (a time budget cannot: it depends on
     the machine's speed).
+
+    A run folder that already holds nerf.ckpt is continued with `resume` or replaced with
+    `overwrite`, never silently. One process at a time trains in a folder (a lock file in it,
+    released when the process ends, however it ends). Everything is checked before the folder is
+    created; a run refused later removes the folder again if it made it and left it empty.
     """
+    check_budget(steps, max_seconds, seed, checkpoint_every)
     dev = resolve_device(device)
-    if steps is not None and steps < 1:
-        raise EngineError(f"--steps must be positive, got {steps}")
-    if max_seconds is not None and max_seconds <= 0:
-        raise EngineError(f"--max-seconds must be positive, got {max_seconds}")
     if steps is None and max_seconds is None:
         max_seconds = DEFAULT_SECONDS
     ds = load_dataset(data, downscale=downscale)
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise EngineError(f"--out {out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "nerf.ckpt"
+    _check_replace(ckpt, resume, overwrite)
+    check_writable(out, folder=True)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with folder_lock(out, LOCK_NAME, holder="another train process"):
+            return _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every,
+                                 progress, config_overrides, should_stop, seed)
+    except EngineError:
+        if created:
+            try:
+                out.rmdir()  # only when empty: nothing of this run is left behind
+            except OSError:
+                pass
+        raise
+
+
+def _check_replace(ckpt: Path, resume: bool, overwrite: bool) -> None:
+    if ckpt.exists() and not resume and not overwrite:
+        raise EngineError(f"{ckpt} already holds a trained NeRF: pass --resume to continue it or --overwrite "
+                          "to replace it")
+
+
+def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every, progress,
+                  config_overrides, should_stop, seed) -> dict:
+    _check_replace(ckpt, resume, overwrite)  # again: another process may have finished here meanwhile
+    # A process killed while writing left its temporary files; with the lock held none is in use.
+    for name in (ckpt, out / "train.json"):
+        remove_stale_temporaries(name)
     state = None
     if resume and ckpt.exists():
         state = read_checkpoint(ckpt).get("trainer")
@@ -289,11 +356,12 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
                         seed=seed)
     trainer = Trainer(model, ds, opts)
     if state:
-        trainer.load_state_dict(state)
+        trainer.load_state_dict(state, where=str(ckpt))
         trainer.elapsed = 0.0  # --max-seconds counts this run
     t0 = time.perf_counter()
     summary = trainer.train(progress=progress, should_stop=should_stop)
     summary.update({"checkpoint": str(ckpt), "device": str(dev), "wall_seconds": time.perf_counter() - t0,
                     "images": len(ds), "width": ds.width, "height": ds.height})
-    (out / "train.json").write_text(json.dumps(summary, indent=1))
+    text = json.dumps(summary, indent=1).encode()
+    atomic_write(out / "train.json", lambda f: f.write(text))
     return summary
