@@ -132,7 +132,10 @@ class NERFDEFORM_OT_cancel_preview(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _job is not None and _job.state == "running"
+        if _job is None or _job.state != "running":
+            cls.poll_message_set("No preview render is running")
+            return False
+        return True
 
     def execute(self, context):
         _job.cancel()
