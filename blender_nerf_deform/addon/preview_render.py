@@ -3,9 +3,11 @@
 Frames come coarse first and then finer (1/8, 1/4, 1/2, full resolution), each
 written into the image "NeRF Preview" as it arrives, so an Image Editor shows
 something at once and sharpens while the artist keeps working: nothing here
-blocks Blender. The worker's answers reach the main thread through the
-client's timer; each answer sends the next, finer request. Cancel stops the
-request in flight and keeps the last frame shown.
+blocks Blender. It is the viewport's `ProgressiveRender` through the scene
+camera: every visible NeRF, merged by depth as F12 merges them. The worker's
+answers reach the main thread through the client's timer; each step's answers
+send the next, finer step. Cancel stops the requests in flight and keeps the
+last frame shown.
 """
 
 from __future__ import annotations
@@ -15,11 +17,11 @@ import numpy as np
 
 from . import jobs
 from .camera import CameraError
-from .frame_render import frame_request, nerfs_to_render, srgb_to_linear
+from .frame_render import nerf_pose, nerfs_to_render, scene_pinhole
+from .viewport import DOWNSCALES, ProgressiveRender
 from .worker_client import WorkerError
 
 IMAGE_NAME = "NeRF Preview"
-DOWNSCALES = (8, 4, 2, 1)
 
 
 def show_in_image_editors(image: bpy.types.Image) -> None:
@@ -36,65 +38,53 @@ def show_in_image_editors(image: bpy.types.Image) -> None:
 
 
 def write_image(rgba: np.ndarray) -> bpy.types.Image:
-    """Put a straight-alpha sRGB frame (rows top-down) into "NeRF Preview" (linear float, rows bottom-up)."""
+    """Put a premultiplied scene-linear frame (rows top-down) into "NeRF Preview" (linear float,
+    straight alpha, rows bottom-up)."""
     height, width = rgba.shape[:2]
     image = bpy.data.images.get(IMAGE_NAME)
     if image is None:
         image = bpy.data.images.new(IMAGE_NAME, width, height, alpha=True, float_buffer=True)
     elif tuple(image.size) != (width, height):
         image.scale(width, height)
-    linear = np.concatenate([srgb_to_linear(rgba[..., :3]), rgba[..., 3:]], axis=-1)
-    image.pixels.foreach_set(np.ascontiguousarray(linear[::-1], dtype=np.float32).ravel())
+    alpha = rgba[..., 3:]
+    straight = np.concatenate([np.where(alpha > 0, rgba[..., :3] / np.maximum(alpha, 1e-12), 0.0), alpha], axis=-1)
+    image.pixels.foreach_set(np.ascontiguousarray(straight[::-1], dtype=np.float32).ravel())
     image.update()
     return image
 
 
 class PreviewJob:
-    """One progressive preview: a chain of worker requests, coarse to fine."""
+    """One progressive preview of the scene camera's view: coarse to fine, every visible NeRF."""
 
     def __init__(self, context):
-        scene = context.scene
-        nerfs = nerfs_to_render(scene)
+        depsgraph = context.evaluated_depsgraph_get()
+        nerfs = nerfs_to_render(depsgraph)
         if not nerfs:
             raise ValueError("no NeRF object in the scene to preview: use Load NeRF first")
-        depsgraph = context.evaluated_depsgraph_get()
-        self.requests = [frame_request(depsgraph, nerfs[0], k) for k in DOWNSCALES]
+        poses = [nerf_pose(depsgraph, nerf) for nerf in nerfs]
         self.client = jobs.worker(context)
-        self.delivered: list[tuple[int, int]] = []  # sizes shown so far
-        self.state = "running"  # running, finished, cancelled, failed
-        self.error = ""
-        self._request_id: int | None = None
+        self._render = ProgressiveRender(self.client, poses, scene_pinhole(depsgraph), self._arrived, downscales=DOWNSCALES)
+
+    @property
+    def state(self) -> str:  # running, finished, cancelled, failed
+        return self._render.state
+
+    @property
+    def error(self) -> str:
+        return self._render.error
+
+    @property
+    def delivered(self) -> list[tuple[int, int]]:  # sizes shown so far
+        return self._render.delivered
 
     def start(self) -> None:
-        self._send(0)
+        self._render.start()
 
-    def _send(self, step: int) -> None:
-        request = self.requests[step]
-        self._request_id = self.client.submit(
-            "render", request.params, request.arrays, shared=request.shared,
-            on_done=lambda result, out: self._arrived(step, out),
-            on_error=self._failed,
-        )
-
-    def _arrived(self, step: int, out: dict) -> None:
-        if self.state != "running":
-            return
-        image = write_image(out["rgba"])
-        self.delivered.append(tuple(image.size))
-        show_in_image_editors(image)
-        if step + 1 < len(self.requests):
-            self._send(step + 1)
-        else:
-            self.state = "finished"
-
-    def _failed(self, error: WorkerError) -> None:
-        if self.state == "running":
-            self.state, self.error = ("cancelled", "") if error.kind == "cancelled" else ("failed", str(error))
+    def _arrived(self, _render, rgba: np.ndarray, _depth, _downscale) -> None:
+        show_in_image_editors(write_image(rgba))
 
     def cancel(self) -> None:
-        if self.state == "running":
-            self.state = "cancelled"
-            self.client.cancel(self._request_id)
+        self._render.cancel()
 
 
 _job: PreviewJob | None = None
@@ -105,7 +95,7 @@ def current_job() -> PreviewJob | None:
 
 
 class NERFDEFORM_OT_preview_render(bpy.types.Operator):
-    """Render the active camera's view of the NeRF in the background into the image "NeRF Preview", coarse to fine"""
+    """Render the active camera's view of the NeRFs in the background into the image "NeRF Preview", coarse to fine"""
 
     bl_idname = "nerf_deform.preview_render"
     bl_label = "Preview Render"
@@ -117,6 +107,8 @@ class NERFDEFORM_OT_preview_render(bpy.types.Operator):
         try:
             _job = PreviewJob(context)
             _job.start()
+            if _job.state == "failed":  # the worker could not take the requests
+                raise WorkerError(_job.error)
         except (CameraError, ValueError, WorkerError) as error:
             self.report({"ERROR"}, f"Preview Render: {error}")
             return {"CANCELLED"}

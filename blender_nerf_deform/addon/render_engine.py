@@ -1,15 +1,24 @@
-"""The "NeRF Deform" render engine: F12, Render Animation, `blender -b file.blend -a / -s -e`.
+"""The "NeRF Deform" render engine: F12, Render Animation, `blender -b file.blend -a / -s -e`, and
+the 3D View's Rendered shading.
 
-Thin, as Cycles' engine class is: `frame_render` builds the request from the
-depsgraph, renders it in the worker and converts the passes; this class
-registers the passes, hands the frame over and writes what comes back.
-Render results are stored bottom row first; the engine's rows run top-down.
+Thin, as Cycles' engine class is: `frame_render` builds the requests from the
+depsgraph, renders them in the worker and converts the passes; this class
+registers the passes, hands the frame over and writes what comes back. In the
+viewport, `viewport.ViewportRender` keeps the progressive render of the view
+and this class draws its latest image with `gpu`, through Blender's display
+colour management (bind_display_space_shader, as Blender's RenderEngine
+template does). Render results and GPU textures are stored bottom row first;
+the engine's rows run top-down.
 """
+
+import weakref
 
 import bpy
 import numpy as np
 
+from .camera import CameraError
 from .frame_render import render_frame
+from .viewport import ViewportRender, viewport_pinhole
 
 
 class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
@@ -17,6 +26,20 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
     bl_label = "NeRF Deform"
     bl_use_preview = False
     bl_use_postprocess = True
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._viewport: ViewportRender | None = None
+        self._texture = None  # (image version, GPUTexture) drawn by view_draw
+
+    def __del__(self):
+        # Blender frees the engine when the view leaves Rendered shading: stop its requests.
+        try:
+            viewport = self._viewport
+        except (AttributeError, ReferenceError):  # never initialized, or its Blender data already gone
+            return
+        if viewport is not None:
+            viewport.stop()
 
     def update_render_passes(self, scene=None, renderlayer=None):
         self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
@@ -49,6 +72,48 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
         if "Alpha" in layer.passes:
             layer.passes["Alpha"].rect.foreach_set(np.ascontiguousarray(rgba[::-1, :, 3], dtype=np.float32).ravel())
         self.end_result(result)
+
+    # -- viewport (Rendered shading) ------------------------------------------------
+
+    def _viewport_render(self) -> ViewportRender:
+        if self._viewport is None:
+            engine = weakref.ref(self)
+
+            def redraw():
+                alive = engine()
+                if alive is not None:
+                    alive.tag_redraw()  # ReferenceError once Blender freed it: ViewportRender ignores that
+
+            self._viewport = ViewportRender(redraw)
+        return self._viewport
+
+    def view_update(self, context, depsgraph):
+        self._viewport_render().update_scene(depsgraph)
+
+    def view_draw(self, context, depsgraph):
+        viewport = self._viewport_render()
+        try:
+            viewport.update_view(viewport_pinhole(context))
+        except CameraError as error:
+            viewport.refuse_view(str(error))
+        self.update_stats("", viewport.status)
+        if viewport.image is None:
+            return
+        import gpu
+        from gpu_extras.presets import draw_texture_2d
+
+        if self._texture is None or self._texture[0] != viewport.image_version:
+            height, width = viewport.image.shape[:2]
+            pixels = np.ascontiguousarray(viewport.image[::-1], dtype=np.float32).ravel()
+            buffer = gpu.types.Buffer("FLOAT", pixels.size, pixels)
+            self._texture = (viewport.image_version, gpu.types.GPUTexture((width, height), format="RGBA16F", data=buffer))
+        region = context.region
+        # Premultiplied scene-linear pixels, stretched over the region (coarse steps are smaller).
+        gpu.state.blend_set("ALPHA_PREMULT")
+        self.bind_display_space_shader(depsgraph.scene)
+        draw_texture_2d(self._texture[1], (0, 0), region.width, region.height)
+        self.unbind_display_space_shader()
+        gpu.state.blend_set("NONE")
 
 
 # Blender's own properties panels that make sense for this engine: output format,
