@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Viewport (Rendered shading) responsiveness, and the cost of a second NeRF in a frame.
 
-    .venv/bin/python tools/bench_viewport.py                                   # /work/runs/old_demo/demo.blend
+    .venv/bin/python tools/bench_viewport.py                                   # demo_out/demo.blend (what `make demo` writes)
     .venv/bin/python tools/bench_viewport.py --blend shot.blend --width 1280 --height 720
 
 Runs the add-on in the bpy module with its real worker (the Python that finds torch: the
@@ -198,7 +198,7 @@ def bench(bpy, args) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="bench_viewport.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--blend", type=Path, default=Path("/work/runs/old_demo/demo.blend"),
+    parser.add_argument("--blend", type=Path, default=Path("demo_out/demo.blend"),
                         help="a .blend with a NeRF object, its cage and handles (default: the old demo's)")
     parser.add_argument("--nerf-object", help="which NeRF object (default: the first, by name, with handles)")
     parser.add_argument("--width", type=int, default=1280)
