@@ -199,7 +199,7 @@ def bench(bpy, args) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="bench_viewport.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--blend", type=Path, default=Path("demo_out/demo.blend"),
-                        help="a .blend with a NeRF object, its cage and handles (default: the old demo's)")
+                        help="a .blend with a NeRF object, its cage and handles (default: the one make demo writes)")
     parser.add_argument("--nerf-object", help="which NeRF object (default: the first, by name, with handles)")
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=720)
