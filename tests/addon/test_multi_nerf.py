@@ -108,8 +108,9 @@ def test_the_nerf_in_front_occludes_the_one_behind_pixel_by_pixel(addon, sphere_
     assert solid_front.sum() > 10
     assert np.allclose(both["Combined"][solid_front], front["Combined"][solid_front], atol=1e-2)
     # The Depth pass is the front NeRF's wherever it covers the pixel, the far one's where only it does.
-    assert np.array_equal(both["Depth"][overlap], front["Depth"][overlap])
-    assert np.array_equal(both["Depth"][only_back], back["Depth"][only_back])
+    # (To float32 rounding: two renders of one NeRF may differ by ~1e-6 relative; a clean-clone run hit it.)
+    assert np.allclose(both["Depth"][overlap], front["Depth"][overlap], rtol=1e-5, atol=1e-5)
+    assert np.allclose(both["Depth"][only_back], back["Depth"][only_back], rtol=1e-5, atol=1e-5)
 
     # Swapped names (so the other one comes first in the list): the same picture, the order is by depth.
     near.name, far.name = "B near", "A far"
