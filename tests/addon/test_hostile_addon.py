@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from fixtures.processes import SCENE_HELPERS, assert_clean, run_blender
+from test_handles import _select_in_edit_mode
 
 _SEQUENCE_HELPERS = SCENE_HELPERS + '''
 import json, time
@@ -419,14 +420,7 @@ def _nerf_with_surface(bpy):
 
 
 def _add_handle(bpy, surface, indices):
-    bpy.context.view_layer.objects.active = surface
-    mesh = surface.data
-    flags = np.zeros(len(mesh.vertices), dtype=bool)
-    flags[indices] = True
-    mesh.vertices.foreach_set("select", flags)
-    mesh.edges.foreach_set("select", np.zeros(len(mesh.edges), dtype=bool))
-    mesh.polygons.foreach_set("select", np.zeros(len(mesh.polygons), dtype=bool))
-    bpy.ops.object.mode_set(mode="EDIT")
+    _select_in_edit_mode(bpy, surface, indices)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     return bpy.context.active_object
 

@@ -76,3 +76,23 @@ def test_prepare_refuses_a_destination_that_holds_files(tmp_path):
     proc = _cli("prepare", "--images", tmp_path / "photos", "--out", tmp_path / "data")
     assert proc.returncode == 2 and "exists and is not an empty folder" in proc.stderr
     assert (tmp_path / "data" / "mine.txt").read_text() == "keep"
+
+
+@pytest.mark.parametrize("case", ["no such folder", "max-size too small", "unwritable destination", "corrupt photo"])
+def test_prepare_bad_input_is_one_error_line(tmp_path, case):
+    photos = tmp_path / "photos"
+    out = tmp_path / "data"
+    extra = []
+    if case != "no such folder":
+        write_corner_photos(photos, n_views=4, width=64, height=48, focal=60.0)
+    if case == "max-size too small":
+        extra = ["--max-size", "10"]
+    if case == "unwritable destination":
+        out = "/sys/nerf_deform_prepare_out"  # root ignores permission bits; /sys refuses everyone
+    if case == "corrupt photo":
+        (photos / "photo_01.png").write_bytes(b"not a png at all")
+    proc = _cli("prepare", "--images", photos, "--out", out, *extra)
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ([] if case == "no such folder" else ["photos"])

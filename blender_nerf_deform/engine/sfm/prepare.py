@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EngineError
+from ..files import check_writable
 from .colmap_cameras import reconstruction_cameras
 from .orient import apply_to_cameras, orientation
 
@@ -83,9 +84,8 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
     names = photos_in(src)
     if dst.exists() and (not dst.is_dir() or any(dst.iterdir())):
         raise EngineError(f"--out {dst}: exists and is not an empty folder; choose a new one")
+    check_writable(dst.parent, folder=True)  # the work folder is made beside the destination
     dst.parent.mkdir(parents=True, exist_ok=True)
-    if not os.access(dst.parent, os.W_OK):
-        raise EngineError(f"--out {dst}: cannot write into {dst.parent}")
     timings: dict[str, float] = {}
     work = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent))
     try:
