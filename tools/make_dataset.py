@@ -6,12 +6,17 @@ the `bpy` module (Blender as a Python module), no Blender UI:
 
     python tools/make_dataset.py --blend SCENE.blend --out DIR \
         [--count 100] [--radius 4] [--resolution 200 [200]] [--seed 0] \
-        [--hemisphere] [--samples 16] [--test-count 0] [--target X Y Z] ...
+        [--hemisphere | --min-elevation DEG] [--samples 16] [--test-count 0] \
+        [--target X Y Z] [--opaque] [--aabb X0 Y0 Z0 X1 Y1 Z1] ...
 
-Cameras sit on a sphere (or the upper hemisphere, +Z up) of the given radius
-around the target point and look at it. Each view is rendered by Cycles on the
-CPU over a transparent film and saved as an 8-bit RGBA PNG with straight
-(unassociated) alpha: background alpha 0, opaque surfaces alpha 1. Cycles'
+Cameras sit on a sphere (or the upper hemisphere, +Z up; or the part of the
+sphere above --min-elevation degrees) of the given radius around the target
+point and look at it. Each view is rendered by Cycles on the CPU over a
+transparent film and saved as an 8-bit RGBA PNG with straight (unassociated)
+alpha: background alpha 0, opaque surfaces alpha 1. With --opaque the film is
+not transparent and the views are 8-bit RGB PNGs (no alpha channel): what is
+behind the object (a room, tools/make_room_scene.py) is part of the capture,
+as in a real photograph, and the cameras may stand inside the scene. Cycles'
 pixel filter is set to a one-pixel box, so a pixel is the average over its own
 area, centred where the NeRF's ray goes. The view transform is "Standard"
 unless --view-transform says otherwise (Blender 5's default AgX would tint
@@ -38,6 +43,8 @@ transforms.json keys:
               transform_matrix       camera-to-world 4x4: Blender's own
                                      `matrix_world` of the camera that rendered
                                      the view (no axis change)
+    aabb                             only with --aabb: [[x0, y0, z0], [x1, y1, z1]], the
+                                     box the object lies in (the engine's scene bounds)
     generator                        how the views were made (tool, options)
 
 Camera convention (DESIGN.md): the camera looks down its local -Z with +Y up;
@@ -94,10 +101,13 @@ class Options:
     seed: int = 0
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
     hemisphere: bool = False
+    min_elevation: float | None = None  # degrees; cameras from this elevation up to the zenith (None: sphere / hemisphere)
     layout: str = "spiral"  # "spiral": even Fibonacci spiral, turned by the seed; "random": uniform random
     samples: int = 16
     denoise: bool = False
     test_count: int = 0
+    opaque: bool = False  # film not transparent, RGB images: the background is part of the capture
+    aabb: tuple | None = None  # ((x0, y0, z0), (x1, y1, z1)) written as transforms.json's "aabb"
     lens: float = 50.0  # mm
     sensor_width: float = 36.0  # mm
     sensor_height: float = 24.0  # mm, used by sensor_fit VERTICAL
@@ -133,6 +143,17 @@ class Options:
             raise DatasetError(f"--shift must be two finite numbers, got {self.shift!r}")
         if self.sensor_fit not in SENSOR_FITS:
             raise DatasetError(f"--sensor-fit must be one of {', '.join(SENSOR_FITS)}, got {self.sensor_fit!r}")
+        if self.min_elevation is not None:
+            if self.hemisphere:
+                raise DatasetError("--hemisphere and --min-elevation exclude each other "
+                                   "(--hemisphere is --min-elevation 0)")
+            if not (math.isfinite(self.min_elevation) and -90.0 <= self.min_elevation < 90.0):
+                raise DatasetError(f"--min-elevation must be in [-90, 90) degrees, got {self.min_elevation!r}")
+        if self.aabb is not None:
+            lo, hi = (tuple(map(float, c)) for c in self.aabb)
+            if len(lo) != 3 or len(hi) != 3 or not all(map(math.isfinite, lo + hi)) or not all(a < b for a, b in zip(lo, hi)):
+                raise DatasetError(f"--aabb must be six finite numbers X0 Y0 Z0 X1 Y1 Z1 with X0 < X1, Y0 < Y1, "
+                                   f"Z0 < Z1, got {self.aabb!r}")
         if self.layout not in ("spiral", "random"):
             raise DatasetError(f"--layout must be spiral or random, got {self.layout!r}")
         if self.frame is not None and not isinstance(self.frame, int):
@@ -147,19 +168,22 @@ class Options:
 
 
 def camera_positions(count: int, radius: float, target=(0.0, 0.0, 0.0), hemisphere: bool = False,
-                     seed: int = 0, layout: str = "spiral") -> np.ndarray:
+                     seed: int = 0, layout: str = "spiral", min_elevation: float | None = None) -> np.ndarray:
     """(count, 3) camera centres on a sphere (or the upper, +Z, hemisphere) around `target`.
 
     "spiral": a Fibonacci spiral (even coverage even for a few dozen views), turned
     about Z by an angle drawn from the seed. "random": uniform on the (hemi)sphere.
+    `min_elevation` (degrees, overrides `hemisphere`): only the cap above that elevation,
+    evenly covered the same way (-90: the sphere, 0: the hemisphere).
     """
     rng = np.random.default_rng(seed)
+    z_min = math.sin(math.radians(min_elevation)) if min_elevation is not None else (0.0 if hemisphere else -1.0)
     if layout == "spiral":
         k = np.arange(count) + 0.5
-        z = 1.0 - k / count * (1.0 if hemisphere else 2.0)
+        z = 1.0 - k / count * (1.0 - z_min)
         phi = rng.uniform(0.0, 2.0 * math.pi) + GOLDEN_ANGLE * np.arange(count)
     elif layout == "random":
-        z = rng.uniform(0.0 if hemisphere else -1.0, 1.0, count)
+        z = rng.uniform(z_min, 1.0, count)
         phi = rng.uniform(0.0, 2.0 * math.pi, count)
     else:
         raise DatasetError(f"--layout must be spiral or random, got {layout!r}")
@@ -275,7 +299,7 @@ def _configure_render(scene, opts: Options) -> None:
     # pixel centre that the NeRF's ray goes through.
     scene.cycles.pixel_filter_type = "BOX"
     scene.cycles.filter_width = 1.0
-    render.film_transparent = True
+    render.film_transparent = not opts.opaque
     render.resolution_x, render.resolution_y = opts.resolution
     render.resolution_percentage = 100
     render.pixel_aspect_x, render.pixel_aspect_y = (opts.pixel_aspect, 1.0) if opts.pixel_aspect >= 1 else (1.0, 1.0 / opts.pixel_aspect)
@@ -293,7 +317,7 @@ def _configure_render(scene, opts: Options) -> None:
         render.threads = opts.threads
     settings = render.image_settings
     settings.file_format = "PNG"
-    settings.color_mode = "RGBA"
+    settings.color_mode = "RGB" if opts.opaque else "RGBA"
     settings.color_depth = "8"
     settings.compression = 15
     if opts.view_transform != "KEEP":
@@ -383,7 +407,7 @@ def make_dataset(out, blend=None, progress=print, quiet: bool = True, **options)
     """Render the dataset of `blend` (a .blend path; None: the scene loaded now) into `out`.
 
     Keyword options are the fields of `Options` (count, radius, resolution=(w, h) or w,
-    seed, target, hemisphere, layout, samples, denoise, test_count, lens, sensor_width,
+    seed, target, hemisphere, min_elevation, layout, samples, denoise, test_count, opaque, aabb, lens, sensor_width,
     sensor_height, sensor_fit, shift, pixel_aspect, view_transform, threads, ...).
     `progress` gets one line per view (None: silent). Raises DatasetError for bad input.
     Returns {"transforms": Path, "test_transforms": Path or None, "frames": int, "seconds": float}.
@@ -435,7 +459,8 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
         extent = float(np.max(np.abs(np.stack([lo - target, hi - target]))) * math.sqrt(3.0))
         far = max(100.0, 2.0 * (opts.radius + extent))
         inside = np.all(lo - 1e-9 <= target) and np.all(target <= hi + 1e-9)
-        if opts.radius < extent and progress and inside:
+        # (An opaque capture inside a room has its cameras inside the scene's box on purpose.)
+        if opts.radius < extent and progress and inside and not opts.opaque:
             progress(f"warning: --radius {opts.radius} may put cameras inside the scene "
                      f"(objects reach {extent:.3g} from the target)")
 
@@ -470,28 +495,31 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
                 "blender": bpy.app.version_string,
                 "engine": "CYCLES", "device": "CPU",
                 "view_transform": scene.view_settings.view_transform,
-                "alpha": "straight",
+                "alpha": "none (opaque film, RGB images: the background is part of the capture)"
+                         if opts.opaque else "straight",
                 "pixel_centres": "ray of pixel (i, j) = ((i + 0.5 - cx) / fl_x, -(j + 0.5 - cy) / fl_y, -1)",
                 **{k: v for k, v in asdict(opts).items() if k not in ("extras",)},
                 **opts.extras,
             }
             generator["lens"], generator["sensor_fit"], generator["shift"] = cam_data.lens, cam_data.sensor_fit, list(opts.shift)
 
-            positions = camera_positions(opts.count, opts.radius, opts.target, opts.hemisphere, opts.seed, opts.layout)
+            box = {} if opts.aabb is None else {"aabb": [list(map(float, c)) for c in opts.aabb]}
+            positions = camera_positions(opts.count, opts.radius, opts.target, opts.hemisphere, opts.seed, opts.layout,
+                                         opts.min_elevation)
             frames = _render_views(bpy, scene, cam_obj, positions, opts.target, out, opts, "train", progress, quiet)
             transforms = out / "transforms.json"
-            write_json_atomic(transforms, {**intr, "frames": frames, "generator": {**generator, "split": "train"}})
+            write_json_atomic(transforms, {**intr, **box, "frames": frames, "generator": {**generator, "split": "train"}})
 
             test_transforms = None
             if opts.test_count:
                 # Other views than the training ones: uniform random, from a different stream of the seed.
                 test_positions = camera_positions(opts.test_count, opts.radius, opts.target, opts.hemisphere,
-                                                  opts.seed + 1_000_003, "random")
+                                                  opts.seed + 1_000_003, "random", opts.min_elevation)
                 test_dir = out / "test"
                 test_frames = _render_views(bpy, scene, cam_obj, test_positions, opts.target, test_dir, opts,
                                             "test", progress, quiet)
                 test_transforms = test_dir / "transforms.json"
-                write_json_atomic(test_transforms, {**intr, "frames": test_frames,
+                write_json_atomic(test_transforms, {**intr, **box, "frames": test_frames,
                                                     "generator": {**generator, "split": "test"}})
     finally:
         bpy.data.objects.remove(cam_obj)
@@ -511,7 +539,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = Options()
     p = argparse.ArgumentParser(
         prog="make_dataset.py",
-        description="Render a NeRF dataset (transforms.json + RGBA PNGs, straight alpha) from a .blend, headless, "
+        description="Render a NeRF dataset (transforms.json + RGBA PNGs, straight alpha; RGB with --opaque) "
+                    "from a .blend, headless, "
                     "with Cycles on the CPU. Cameras on a sphere around --target, looking at it.")
     p.add_argument("--blend", required=True, type=Path, help="the .blend to render (its active scene)")
     p.add_argument("--out", required=True, type=Path, help="output folder (transforms.json, images/, test/)")
@@ -523,12 +552,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", type=float, nargs=3, metavar=("X", "Y", "Z"), default=list(d.target),
                    help="point the cameras look at (default 0 0 0)")
     p.add_argument("--hemisphere", action="store_true", help="upper (+Z) hemisphere only (default: whole sphere)")
+    p.add_argument("--min-elevation", type=float, default=None, metavar="DEG",
+                   help="cameras from this elevation (degrees above the target's horizontal plane) up to the "
+                        "zenith, e.g. -15: the upper hemisphere and a little below (default: whole sphere)")
     p.add_argument("--layout", choices=("spiral", "random"), default=d.layout,
                    help="spiral: even Fibonacci spiral turned by the seed (default); random: uniform random")
     p.add_argument("--samples", type=int, default=d.samples, help=f"Cycles samples per pixel (default {d.samples})")
     p.add_argument("--denoise", action="store_true", help="Cycles denoising (OpenImageDenoise; default off)")
     p.add_argument("--test-count", type=int, default=d.test_count,
                    help="extra random views written to OUT/test/ (default 0: none)")
+    p.add_argument("--opaque", action="store_true",
+                   help="no transparent film: RGB images, the background (a room) is part of the capture")
+    p.add_argument("--aabb", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), default=None,
+                   help="write this box as transforms.json's \"aabb\" (the region the object lies in)")
     p.add_argument("--lens", type=float, default=d.lens, help=f"focal length in mm (default {d.lens})")
     p.add_argument("--sensor-width", type=float, default=d.sensor_width, help=f"mm (default {d.sensor_width})")
     p.add_argument("--sensor-height", type=float, default=d.sensor_height,
@@ -557,11 +593,12 @@ def main(argv=None) -> int:
             args.out, blend=args.blend, quiet=not args.verbose,
             progress=lambda line: print(line, flush=True),
             count=args.count, radius=args.radius, resolution=resolution, seed=args.seed, target=tuple(args.target),
-            hemisphere=args.hemisphere, layout=args.layout, samples=args.samples, denoise=args.denoise,
+            hemisphere=args.hemisphere, min_elevation=args.min_elevation, layout=args.layout, samples=args.samples, denoise=args.denoise,
             test_count=args.test_count, lens=args.lens, sensor_width=args.sensor_width,
             sensor_height=args.sensor_height, sensor_fit=args.sensor_fit, shift=tuple(args.shift),
             pixel_aspect=args.pixel_aspect, view_transform=args.view_transform, threads=args.threads,
-            frame=args.frame)
+            frame=args.frame, opaque=args.opaque,
+            aabb=None if args.aabb is None else (tuple(args.aabb[:3]), tuple(args.aabb[3:])))
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
