@@ -50,7 +50,11 @@ def test_instant_ngp_form_with_per_frame_intrinsics_rgb_and_jpg(tmp_path):
     assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (10, 12, 4.5, 2.5, 8, 6)
     assert b.fx == 20 and b.fy == 12
     np.testing.assert_array_equal(ds.images[..., 3], 1.0)  # RGB: opaque
-    np.testing.assert_array_equal(ds.aabb, [[-3.0] * 3, [3.0] * 3])
+    # instant-ngp's scene: aabb_scale (2) unit cubes about its centre, mapped back by its default
+    # scale 0.33 and offset 0.5; the unit cube itself is the inner box.
+    np.testing.assert_allclose(ds.aabb, [[-1 / 0.33] * 3, [1 / 0.33] * 3], rtol=1e-6)
+    np.testing.assert_allclose(ds.inner_aabb, [[-0.5 / 0.33] * 3, [0.5 / 0.33] * 3], rtol=1e-6)
+    assert ds.source_format == "instant-ngp" and not ds.has_alpha
 
 
 def test_explicit_aabb_and_bounds_derived_from_cameras(tmp_path):

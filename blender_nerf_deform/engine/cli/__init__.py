@@ -16,6 +16,9 @@ import sys
 from ..errors import EngineError
 
 PROG = "python -m blender_nerf_deform.engine"
+DATA_HELP = ("dataset: a transforms.json (instant-ngp, nerfstudio or NeRF-synthetic) or its folder; an LLFF folder "
+             "(poses_bounds.npy + images_N/; --downscale N picks images_N) or one of its image folders; a COLMAP "
+             "sparse model (cameras, images, points3D .bin/.txt) or a folder with sparse/0/ and images/")
 
 
 def _command(module: str):
@@ -35,8 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    p = sub.add_parser("train", help="train a NeRF on a transforms.json dataset")
-    p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p = sub.add_parser("train", help="train a NeRF on a dataset (transforms.json, LLFF, COLMAP)")
+    p.add_argument("--data", required=True, metavar="PATH", help=DATA_HELP)
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder; the checkpoint is RUN_DIR/nerf.ckpt")
     p.add_argument("--max-seconds", type=float, metavar="S", help="stop training after S seconds")
     p.add_argument("--steps", type=int, metavar="N", help="stop training after N steps")
@@ -48,18 +51,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace RUN_DIR/nerf.ckpt when it exists "
                    "(without --resume or --overwrite an existing checkpoint is an error)")
     p.add_argument("--checkpoint-every", type=float, default=120.0, metavar="S", help="rewrite the checkpoint every S seconds (default 120)")
+    p.add_argument("--drop-blurry", type=float, default=0.0, metavar="FRACTION",
+                   help="leave out that fraction of the frames, the blurriest (by instant-ngp's per-frame `sharpness`, "
+                   "else measured on the images); default 0: keep all")
     p.set_defaults(handler=_command("train"))
 
     p = sub.add_parser("eval", help="print PSNR of a checkpoint over a dataset's frames")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
-    p.add_argument("--data", required=True, metavar="DIR", help="folder holding transforms.json and its images")
+    p.add_argument("--data", required=True, metavar="PATH", help=DATA_HELP)
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_command("eval"))
 
     p = sub.add_parser("render", help="render frames of a NeRF, optionally ray-bent by a deformed cage")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
-    p.add_argument("--cameras", required=True, metavar="TRANSFORMS_JSON", help="cameras to render, in transforms.json form")
+    p.add_argument("--cameras", required=True, metavar="TRANSFORMS_JSON", help="cameras to render: a transforms.json, or any dataset form --data of train reads")
     p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<name>.png (RGBA, straight alpha) per frame")
     p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
     p.add_argument("--deformed", metavar="V.npy|DIR", help="(N,3) deformed positions of the cage's vertices, same order; "

@@ -1,6 +1,17 @@
-"""transforms.json datasets: cameras + images, for training, evaluation and rendering.
+"""Datasets: cameras + images, for training, evaluation and rendering, from every common format.
 
-Two forms are read (keys at the top level, any of them overridable per frame):
+`load_dataset(path)` is the one entry point (train, eval, render --cameras). It recognises,
+in this order:
+
+1. a transforms.json (the file, or a folder holding transforms.json / transforms_train.json):
+   NeRF-synthetic, instant-ngp or nerfstudio form (below);
+2. LLFF: a folder with `poses_bounds.npy` and `images/`, `images_N/` (or one of those image
+   folders itself): llff.py;
+3. a COLMAP sparse model (cameras, images, points3D; .bin or .txt) in the folder, in its
+   `sparse/0/` or `sparse/`, or the model folder itself, with the photos in `images/`
+   beside it: colmap_model.py.
+
+transforms.json keys (at the top level, any of them overridable per frame):
 
 - NeRF-synthetic: `camera_angle_x` (horizontal field of view, radians; optional
   `camera_angle_y`), square pixels, principal point at the image centre.
@@ -9,6 +20,17 @@ Two forms are read (keys at the top level, any of them overridable per frame):
   instant-ngp's `is_fisheye` or nerfstudio's `camera_model` OPENCV_FISHEYE
   (`camera_model` PINHOLE / OPENCV / OPENCV_FISHEYE; others are refused by
   name). Rays go through the distorted pixels (lens.py).
+- nerfstudio's `applied_transform` (3x4) records the transform ns-process-data applied to
+  COLMAP's poses: the `transform_matrix` poses are already in the file's world, and
+  nerfstudio's own parser only composes it into its export transform (to bring COLMAP-frame
+  points along). So it changes no camera here: it is checked (3x4, finite) and kept in
+  `meta`. The cameras stay in the file's world, as instant-ngp keeps them (nerfstudio's
+  parser re-orients and rescales at load time; we do not, so that cameras written for a
+  dataset, `render --cameras`, stay in its frame).
+- nerfstudio's per-frame `mask_path`: a mask image of the photo's size (0 = the pixel does
+  not count in the loss) → `NerfDataset.masks`; frames without one count everywhere.
+- instant-ngp's per-frame `sharpness` (variance of the Laplacian, from colmap2nerf): used by
+  `min_sharpness_quantile` (below) when every frame has one.
 
 Frames whose image file is missing are skipped with a warning, as instant-ngp
 does (its fox lists 67 frames for 50 photos in its own repository); a dataset
@@ -20,65 +42,53 @@ Blender/OpenGL convention). Images: PNG/JPG, RGB or RGBA (straight alpha), all
 the same size. `downscale=k` box-filters images by an integer factor k
 (premultiplied, so edges do not darken) and scales the intrinsics.
 
-Scene bounds (the aabb), in this order:
-1. `aabb`: [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the json;
-2. `aabb_scale` (instant-ngp): the box [-1.5 s, 1.5 s]^3 (instant-ngp maps the
-   NeRF-synthetic world [-1.5, 1.5]^3 to its unit cube and scales that by s);
+Two boxes, in the json's world: `aabb`, the whole scene (what a bounded NeRF models), and
+`inner_aabb`, the object region (the inner box of an unbounded model, where cages and edit
+regions live), the same as `aabb` unless said below. In this order:
+1. `aabb`: [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the json: both boxes. With an
+   `aabb_scale` s as well, `aabb` becomes instant-ngp's scene: the cube of s times the box's
+   longest side about its centre (instant-ngp fits that box's cube to its unit cube);
+2. instant-ngp's `aabb_scale`, `scale`, `offset`: instant-ngp maps a world point p to its
+   unit cube as q = cycle(scale * p + offset), cycle(x, y, z) = (y, z, x) (nerf_loader.h,
+   nerf_position_to_ngp: the offset is added in the json's axis order, before the cycle;
+   defaults scale 0.33, offset 0.5), and its scene is the cube of side aabb_scale (a power
+   of two, 1 to 128) about q = (0.5, 0.5, 0.5). `inner_aabb` is the unit cube [0, 1]^3
+   mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), `aabb` the scene cube;
 3. NeRF-synthetic form (`camera_angle_x`): [-1.5, 1.5]^3, as DESIGN.md states;
 4. otherwise derived from the cameras: centred on the point closest (least
    squares) to all optical axes, half-width = mean camera distance to that
    point x tan(half the narrower field of view): the largest centred object
    that every camera sees whole.
+
+`min_sharpness_quantile=q` (0 keeps all) drops the blurriest fraction q of the frames (by
+their `sharpness` when every frame has one, else by the variance of the Laplacian of the
+loaded images' luma, as colmap2nerf computes `sharpness`). instant-ngp's own
+`sharpness_discard_threshold` compares each frame with its neighbours' mean instead; a
+fraction says plainly how many frames go.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import os
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import EngineError
-from .camera import Camera, Distortion
+from .frames import (FORMAT_LABELS, FrameSource, NerfDataset, downscale_image, downscale_mask, find_image, frame_name, image_size,
+                     laplacian_sharpness, lens_of, load_image, load_mask, number, pixels, camera_from_keys,
+                     check_c2w, derive_aabb, scaled_camera)
 
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_CAMERA_MODELS = {"PINHOLE": None, "SIMPLE_PINHOLE": None, "OPENCV": "opencv", "SIMPLE_RADIAL": "opencv",
-                  "RADIAL": "opencv", "OPENCV_FISHEYE": "fisheye"}
-_IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+__all__ = ["FORMAT_LABELS", "NerfDataset", "load_dataset"]
 
-
-@dataclass
-class NerfDataset:
-    """Images (N, H, W, 4) float32 straight-alpha RGBA in [0,1] (None when loaded without images),
-    cameras (one per frame), aabb (2, 3) and the frames' names (file_path basenames without extension)."""
-
-    cameras: list
-    aabb: np.ndarray
-    names: list
-    images: np.ndarray | None = None
-    source: str = ""
-    has_alpha: bool = True
-    meta: dict = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.cameras)
-
-    @property
-    def width(self) -> int:
-        return self.cameras[0].width
-
-    @property
-    def height(self) -> int:
-        return self.cameras[0].height
-
-    def subset(self, indices) -> "NerfDataset":
-        indices = list(indices)
-        return NerfDataset([self.cameras[i] for i in indices], self.aabb, [self.names[i] for i in indices],
-                           None if self.images is None else self.images[indices], self.source, self.has_alpha, self.meta)
+# instant-ngp's defaults (nerf_loader.h: NERF_SCALE, offset 0.5) and its largest aabb_scale
+# (its occupancy grid has at most 8 cascades: 2^7).
+NGP_SCALE = 0.33
+NGP_OFFSET = (0.5, 0.5, 0.5)
+NGP_MAX_AABB_SCALE = 128
+_NERFSTUDIO_KEYS = ("camera_model", "applied_transform", "applied_scale", "mask_path", "orientation_override")
+_NGP_KEYS = ("fl_x", "fl_y", "aabb_scale", "scale", "offset", "is_fisheye", "sharpness")
 
 
 def _resolve_json(path) -> Path:
@@ -93,154 +103,62 @@ def _resolve_json(path) -> Path:
     return p
 
 
-def _number(d: dict, key: str, where: str) -> float:
-    try:
-        v = float(d[key])
-    except (TypeError, ValueError):
-        raise EngineError(f"{where}: `{key}` is not a number ({d[key]!r})") from None
-    if not math.isfinite(v):
-        raise EngineError(f"{where}: `{key}` is not finite ({d[key]!r})")
-    return v
+def _transforms_format(meta: dict, frames: list) -> str:
+    dicts = [meta] + [f for f in frames if isinstance(f, dict)]
+    if any(k in d for d in dicts for k in _NERFSTUDIO_KEYS):
+        return "nerfstudio"
+    if any(k in d for d in dicts for k in _NGP_KEYS):
+        return "instant-ngp"
+    return "nerf-synthetic" if "camera_angle_x" in meta else "instant-ngp"
 
 
-def _pixels(d: dict, key: str, where: str) -> int:
-    """An image size in pixels: a positive whole number."""
-    v = _number(d, key, where)
-    if v != int(v) or v < 1:
-        raise EngineError(f"{where}: `{key}` must be a positive whole number of pixels, got {d[key]!r}")
-    return int(v)
+def _aabb_scale(meta: dict, where: str) -> float:
+    s = number(meta, "aabb_scale", where)
+    if not (1 <= s <= NGP_MAX_AABB_SCALE and s == int(s) and (int(s) & (int(s) - 1)) == 0):
+        raise EngineError(f"{where}: `aabb_scale` = {meta['aabb_scale']!r} must be a power of two from 1 to "
+                          f"{NGP_MAX_AABB_SCALE} (instant-ngp's scene is that many unit cubes wide)")
+    return s
 
 
-def _field_of_view(d: dict, key: str, where: str) -> float:
-    v = _number(d, key, where)
-    if not 0.0 < v < math.pi:
-        raise EngineError(f"{where}: `{key}` = {d[key]!r} is not a field of view in radians (0 < angle < pi)")
-    return v
+def _transforms_boxes(meta: dict, where: str):
+    """(aabb, inner_aabb) of the json's keys (module docstring), or (None, None): derive them."""
+    if "aabb" in meta:
+        try:
+            box = np.asarray(meta["aabb"], dtype=np.float64).reshape(2, 3)
+        except (TypeError, ValueError):
+            raise EngineError(f"{where}: `aabb` must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]") from None
+        if not np.isfinite(box).all() or not (box[1] > box[0]).all():
+            raise EngineError(f"{where}: `aabb` {meta['aabb']} is not a finite non-empty box")
+        if "aabb_scale" not in meta:
+            return box.astype(np.float32), box.astype(np.float32)
+        half = 0.5 * _aabb_scale(meta, where) * float((box[1] - box[0]).max())
+        centre = box.mean(axis=0)
+        return np.stack([centre - half, centre + half]).astype(np.float32), box.astype(np.float32)
+    if any(k in meta for k in ("aabb_scale", "scale", "offset")):
+        a = _aabb_scale(meta, where) if "aabb_scale" in meta else 1.0
+        scale = number(meta, "scale", where) if "scale" in meta else NGP_SCALE
+        if scale <= 0:
+            raise EngineError(f"{where}: `scale` must be positive, got {meta['scale']!r}")
+        offset = meta.get("offset", NGP_OFFSET)
+        try:
+            offset = np.broadcast_to(np.asarray(offset, dtype=np.float64), (3,)).copy()
+        except (TypeError, ValueError):
+            raise EngineError(f"{where}: `offset` must be a number or [x, y, z], got {meta['offset']!r}") from None
+        if not np.isfinite(offset).all():
+            raise EngineError(f"{where}: `offset` {meta['offset']!r} is not finite")
+        # The cubes are centred on q = 0.5 on every axis, so the axis cycle leaves them unchanged:
+        # only p = (q - offset) / scale, per json axis.
+        def back(lo, hi):
+            return np.stack([(lo - offset) / scale, (hi - offset) / scale]).astype(np.float32)
+
+        return back(0.5 - 0.5 * a, 0.5 + 0.5 * a), back(0.0, 1.0)
+    if "camera_angle_x" in meta:
+        box = np.array([[-1.5] * 3, [1.5] * 3], dtype=np.float32)
+        return box, box.copy()
+    return None, None
 
 
-def _lens(d: dict, where: str) -> Distortion | None:
-    """The lens of a camera's keys (None for a pinhole): nerfstudio's `camera_model`, instant-ngp's
-    `is_fisheye`, and the coefficients k1-k4, p1, p2 (absent = 0)."""
-    model = d.get("camera_model")
-    if model is not None:
-        if model not in _CAMERA_MODELS:
-            raise EngineError(f"{where}: camera_model {model!r} is not supported "
-                              f"(supported: {', '.join(sorted(_CAMERA_MODELS))})")
-        kind = _CAMERA_MODELS[model]
-    else:
-        kind = "fisheye" if d.get("is_fisheye") else "opencv"
-    coefficients = {k: _number(d, k, where) for k in _DISTORTION_KEYS if d.get(k) is not None}
-    if kind is None:
-        if any(coefficients.values()):
-            raise EngineError(f"{where}: camera_model {model} has no distortion, but the frame gives "
-                              f"{', '.join(k for k, v in coefficients.items() if v)}")
-        return None
-    if kind == "opencv" and coefficients.get("k4"):
-        raise EngineError(f"{where}: `k4` = {coefficients['k4']} belongs to the fisheye model (set is_fisheye or "
-                          "camera_model OPENCV_FISHEYE), or to OpenCV's rational model, which is not supported")
-    if kind == "fisheye" and (coefficients.get("p1") or coefficients.get("p2")):
-        raise EngineError(f"{where}: a fisheye camera has no tangential terms p1/p2")
-    lens = Distortion(kind, **coefficients)
-    return None if lens.is_identity else lens
-
-
-def _frame_name(rel: str, where: str) -> str:
-    """The frame's name (its file_path's basename without extension), which `render` writes as <name>.png."""
-    if "\0" in rel:
-        raise EngineError(f"{where}: `file_path` {rel!r} holds a NUL byte")
-    name = os.path.splitext(os.path.basename(rel))[0]
-    if name in ("", ".", ".."):
-        raise EngineError(f"{where}: `file_path` {rel!r} names no file (a frame needs a file name, "
-                          "not a folder: its render is written as <name>.png)")
-    return name
-
-
-def _find_image(root: Path, rel: str, where: str) -> Path:
-    p = root / rel
-    if p.is_file():
-        return p
-    if not p.suffix:
-        for ext in _IMAGE_EXTS:
-            if p.with_suffix(ext).is_file():
-                return p.with_suffix(ext)
-    raise EngineError(f"{where}: image {p} not found")
-
-
-# PIL modes by how their values scale to [0, 1]: 16-bit grey is read as is (a convert to RGB
-# would clip it to 8 bits: 50% grey became white); the 8-bit modes go through RGB(A).
-_GREY16_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
-_RGBA_MODES = ("LA", "La", "PA", "RGBa", "RGBA")
-_RGB_MODES = ("1", "L", "P", "RGB", "CMYK", "YCbCr", "LAB", "HSV")
-
-
-def _load_image(path: Path) -> np.ndarray:
-    """(H, W, 4) float32 straight-alpha RGBA in [0, 1]: 8-bit data / 255, 16-bit data / 65535."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            im.load()
-            mode = im.mode
-            if mode in _GREY16_MODES:
-                grey = np.asarray(im).astype(np.float32)
-                if mode == "I" and (grey.min() < 0 or grey.max() > 65535):
-                    raise EngineError(f"{path}: 32-bit integer image with values {grey.min():g}..{grey.max():g} "
-                                      "outside 0..65535: save it as an 8- or 16-bit PNG")
-                grey /= 65535.0
-                return np.concatenate([np.repeat(grey[..., None], 3, axis=-1),
-                                       np.ones(grey.shape + (1,), np.float32)], axis=-1)
-            if mode in _RGBA_MODES or (mode in _RGB_MODES and "transparency" in im.info):
-                im = im.convert("RGBA")
-            elif mode in _RGB_MODES:
-                im = im.convert("RGB")
-            else:
-                raise EngineError(f"{path}: unsupported image mode {mode!r} (use 8- or 16-bit RGB, RGBA or grey)")
-            arr = np.asarray(im)
-    except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
-        raise EngineError(f"{path}: cannot read image ({exc})") from None
-    arr = arr.astype(np.float32) / 255.0
-    if arr.shape[-1] == 3:
-        arr = np.concatenate([arr, np.ones(arr.shape[:2] + (1,), np.float32)], axis=-1)
-    return arr
-
-
-def _downscale(img: np.ndarray, k: int) -> np.ndarray:
-    """Box filter by an integer factor on premultiplied colour; crops the remainder at right/bottom."""
-    h, w = img.shape[0] // k * k, img.shape[1] // k * k
-    img = img[:h, :w]
-    pre = np.concatenate([img[..., :3] * img[..., 3:4], img[..., 3:4]], axis=-1)
-    pre = pre.reshape(h // k, k, w // k, k, 4).mean(axis=(1, 3))
-    a = pre[..., 3:4]
-    rgb = np.where(a > 0, pre[..., :3] / np.maximum(a, 1e-12), 0.0)
-    return np.concatenate([rgb, a], axis=-1).astype(np.float32)
-
-
-def _derive_aabb(cameras: list) -> np.ndarray:
-    """Box centred where the optical axes meet (least squares), sized so every camera sees it whole."""
-    a = np.zeros((3, 3))
-    b = np.zeros(3)
-    origins, axes = [], []
-    for cam in cameras:
-        o = cam.c2w[:3, 3]
-        d = -cam.c2w[:3, 2] / np.linalg.norm(cam.c2w[:3, 2])
-        m = np.eye(3) - np.outer(d, d)
-        a += m
-        b += m @ o
-        origins.append(o)
-        axes.append(d)
-    try:
-        center = np.linalg.solve(a, b)
-    except np.linalg.LinAlgError:
-        center = np.mean(origins, axis=0)
-    dist = float(np.mean([np.linalg.norm(o - center) for o in origins]))
-    half_fov = min(min(math.atan(0.5 * c.width / c.fx), math.atan(0.5 * c.height / c.fy)) for c in cameras)
-    half = max(dist * math.tan(half_fov), 1e-3)
-    return np.stack([center - half, center + half]).astype(np.float32)
-
-
-def load_dataset(path, downscale: int = 1, load_images: bool = True) -> NerfDataset:
-    """Load a transforms.json (or a folder holding one). Raises EngineError naming the file/key at fault."""
-    jpath = _resolve_json(path)
+def _read_transforms(jpath: Path, downscale: int, load_images: bool) -> FrameSource:
     root = jpath.parent
     try:
         meta = json.loads(jpath.read_text())
@@ -255,110 +173,147 @@ def load_dataset(path, downscale: int = 1, load_images: bool = True) -> NerfData
         raise EngineError(f"{jpath}: missing key `frames`")
     if not isinstance(frames, list) or not frames:
         raise EngineError(f"{jpath}: `frames` is empty: the dataset has no images")
-    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
-        raise EngineError(f"--downscale must be a positive integer, got {downscale!r}")
-    downscale = int(downscale)
-    _lens(meta, str(jpath))
+    lens_of(meta, str(jpath))
+    if "applied_transform" in meta:
+        m = np.asarray(meta["applied_transform"], dtype=object)
+        try:
+            ok = m.shape in ((3, 4), (4, 4)) and np.isfinite(m.astype(np.float64)).all()
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise EngineError(f"{jpath}: `applied_transform` must be a finite 3x4 matrix")
+    aabb, inner = _transforms_boxes(meta, str(jpath))
 
-    cameras, names, images, missing = [], [], [], []
-    size = None
+    cameras, paths, masks, sharpness, missing = [], [], [], [], []
     for n, fr in enumerate(frames):
         where = f"{jpath}: frames[{n}]"
         if not isinstance(fr, dict):
             raise EngineError(f"{where}: expected an object")
         cam_meta = {**meta, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
-        lens = _lens(cam_meta, where)
+        lens_of(cam_meta, where)
         if "transform_matrix" not in fr:
             raise EngineError(f"{where}: missing key `transform_matrix`")
-        try:
-            c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise EngineError(f"{where}: `transform_matrix` is not a 4x4 matrix of numbers") from None
-        if c2w.shape == (3, 4):
-            c2w = np.concatenate([c2w, [[0, 0, 0, 1]]])
-        if c2w.shape != (4, 4):
-            raise EngineError(f"{where}: `transform_matrix` has shape {c2w.shape}, expected 4x4")
-        if not np.isfinite(c2w).all():
-            raise EngineError(f"{where}: `transform_matrix` has non-finite values")
+        c2w = check_c2w(fr["transform_matrix"], where)
         if "file_path" not in fr:
             raise EngineError(f"{where}: missing key `file_path`")
         rel = str(fr["file_path"])
-        name = _frame_name(rel, where)
-        img = None
-        if load_images:
-            try:
-                img_path = _find_image(root, rel, where)
-            except EngineError:
+        name = frame_name(rel, where)
+        sized = "w" in cam_meta and "h" in cam_meta
+        try:
+            img_path = find_image(root, rel, where)
+        except EngineError:
+            if load_images:
                 missing.append(rel)
                 continue
-            img = _load_image(img_path)
-            if size is None:
-                size = img.shape[:2]
-            elif img.shape[:2] != size:
-                raise EngineError(f"{img_path}: image is {img.shape[1]}x{img.shape[0]}, the first frame's is "
-                                  f"{size[1]}x{size[0]}: all images must have the same size")
-            h, w = img.shape[:2]
-            if "w" in cam_meta and _pixels(cam_meta, "w", where) != w or "h" in cam_meta and _pixels(cam_meta, "h", where) != h:
-                raise EngineError(f"{img_path}: image is {w}x{h} but `w`/`h` say {cam_meta.get('w')}x{cam_meta.get('h')}")
+            if not sized:
+                raise  # cameras only (render): the size must be given, or read from the image header
+            img_path = None
+        if sized:
+            w, h = pixels(cam_meta, "w", where), pixels(cam_meta, "h", where)
         else:
-            if "w" not in cam_meta or "h" not in cam_meta:
-                # Cameras-only use (render): the size must be given, or read from the image header.
-                img_path = _find_image(root, rel, where)
-                from PIL import Image
-
-                try:
-                    with Image.open(img_path) as im:
-                        w, h = im.size
-                except OSError as exc:
-                    raise EngineError(f"{img_path}: cannot read image ({exc})") from None
-            else:
-                w, h = _pixels(cam_meta, "w", where), _pixels(cam_meta, "h", where)
-        if w <= 0 or h <= 0:
-            raise EngineError(f"{where}: image size {w}x{h} is empty")
-        if "fl_x" in cam_meta:
-            fx = _number(cam_meta, "fl_x", where)
-            fy = _number(cam_meta, "fl_y", where) if "fl_y" in cam_meta else fx
-            cx = _number(cam_meta, "cx", where) if "cx" in cam_meta else w / 2.0
-            cy = _number(cam_meta, "cy", where) if "cy" in cam_meta else h / 2.0
-        elif "camera_angle_x" in cam_meta:
-            ax = _field_of_view(cam_meta, "camera_angle_x", where)
-            fx = 0.5 * w / math.tan(0.5 * ax)
-            fy = 0.5 * h / math.tan(0.5 * _field_of_view(cam_meta, "camera_angle_y", where)) if "camera_angle_y" in cam_meta else fx
-            cx, cy = w / 2.0, h / 2.0
-        else:
-            raise EngineError(f"{where}: missing key `camera_angle_x` or `fl_x` (no camera intrinsics)")
-        if fx <= 0 or fy <= 0:
-            raise EngineError(f"{where}: focal length must be positive (fx={fx}, fy={fy})")
+            w, h = image_size(img_path)
         k = downscale
         if w < k or h < k:
             raise EngineError(f"{where}: image {w}x{h} is smaller than --downscale {k}")
-        if img is not None and k > 1:
-            img = _downscale(img, k)
-        cameras.append(Camera(c2w, fx / k, fy / k, cx / k, cy / k, w // k, h // k, name, lens))
-        names.append(name)
-        if img is not None:
-            images.append(img)
+        cameras.append(camera_from_keys(cam_meta, c2w, w, h, name, where))
+        paths.append(img_path)
+        mask = None
+        if fr.get("mask_path") is not None:
+            mask = root / str(fr["mask_path"])
+            if load_images and not mask.is_file():
+                raise EngineError(f"{where}: mask image {mask} (`mask_path`) not found")
+        masks.append(mask)
+        sharpness.append(number(fr, "sharpness", where) if "sharpness" in fr else None)
+    if not cameras:
+        raise EngineError(f"{jpath}: none of its {len(frames)} frames has an image file (first: {root / missing[0]})")
+    return FrameSource(cameras, paths, str(jpath), _transforms_format(meta, frames), aabb, inner, downscale,
+                       masks if any(m is not None for m in masks) else None,
+                       sharpness if all(s is not None for s in sharpness) else None,
+                       meta, "`w`/`h` say", missing, len(frames))
 
-    if missing:
-        if not cameras:
-            raise EngineError(f"{jpath}: none of its {len(frames)} frames has an image file (first: {root / missing[0]})")
-        print(f"warning: {jpath}: {len(missing)} of {len(frames)} frames have no image file and are skipped "
-              f"(first: {missing[0]})", file=sys.stderr)
-    if "aabb" in meta:
-        try:
-            aabb = np.asarray(meta["aabb"], dtype=np.float32).reshape(2, 3)
-        except (TypeError, ValueError):
-            raise EngineError(f"{jpath}: `aabb` must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]") from None
-        if not np.isfinite(aabb).all() or not (aabb[1] > aabb[0]).all():
-            raise EngineError(f"{jpath}: `aabb` {meta['aabb']} is not a finite non-empty box")
-    elif "aabb_scale" in meta:
-        s = _number(meta, "aabb_scale", str(jpath))
-        if s <= 0:
-            raise EngineError(f"{jpath}: `aabb_scale` must be positive, got {s}")
-        aabb = np.array([[-1.5 * s] * 3, [1.5 * s] * 3], dtype=np.float32)
-    elif "camera_angle_x" in meta:
-        aabb = np.array([[-1.5] * 3, [1.5] * 3], dtype=np.float32)
-    else:
-        aabb = _derive_aabb(cameras)
+
+def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float) -> NerfDataset:
+    """Images, masks, boxes, sharpness filter: the part every format shares."""
+    k = src.extra_downscale
+    images, masks, size = [], [], None
+    if load_images:
+        for cam, path, mask_path in zip(src.cameras, src.image_paths, src.mask_paths or [None] * len(src.cameras)):
+            img = load_image(path)
+            h, w = img.shape[:2]
+            if size is None:
+                size = (h, w)
+            elif (h, w) != size:
+                raise EngineError(f"{path}: image is {w}x{h}, the first frame's is "
+                                  f"{size[1]}x{size[0]}: all images must have the same size")
+            if (w, h) != (cam.width, cam.height):
+                raise EngineError(f"{path}: image is {w}x{h} but {src.size_keys} {cam.width}x{cam.height}")
+            if src.mask_paths is not None:
+                mask = load_mask(mask_path) if mask_path is not None else np.ones((h, w), bool)
+                if mask.shape != (h, w):
+                    raise EngineError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {path} "
+                                      f"is {w}x{h}")
+                masks.append(downscale_mask(mask, k) if k > 1 else mask)
+            images.append(downscale_image(img, k) if k > 1 else img)
+    if src.missing_rel:
+        print(f"warning: {src.source}: {len(src.missing_rel)} of {src.n_listed} frames have no image file and are "
+              f"skipped (first: {src.missing_rel[0]})", file=sys.stderr)
+    cameras = [scaled_camera(c, k) for c in src.cameras]
+    aabb = src.aabb if src.aabb is not None else derive_aabb(cameras)
+    inner = src.inner_aabb if src.inner_aabb is not None else aabb.copy()
     imgs = np.stack(images) if images else None
-    return NerfDataset(cameras, aabb, names, imgs, str(jpath), meta=meta)
+    ds = NerfDataset(cameras, np.asarray(aabb, np.float32), [c.name for c in cameras], imgs, src.source,
+                     bool((imgs[..., 3] < 1).any()) if imgs is not None else src.source_format == "nerf-synthetic",
+                     src.meta, np.asarray(inner, np.float32), np.stack(masks) if masks else None, src.source_format)
+    if min_sharpness_quantile:
+        ds = _drop_blurry(ds, src.sharpness, min_sharpness_quantile)
+    return ds
+
+
+def _drop_blurry(ds: NerfDataset, sharpness, q: float) -> NerfDataset:
+    if sharpness is None:
+        if ds.images is None:
+            raise EngineError(f"{ds.source}: dropping blurry frames needs per-frame `sharpness` or the images")
+        sharpness = [laplacian_sharpness(img) for img in ds.images]
+    n_drop = int(q * len(ds))
+    if n_drop == 0:
+        return ds
+    order = np.argsort(np.asarray(sharpness, np.float64), kind="stable")
+    print(f"note: {ds.source}: dropped the {n_drop} blurriest of {len(ds)} frames (sharpness below "
+          f"{sharpness[order[n_drop]]:.4g})", file=sys.stderr)
+    return ds.subset(sorted(order[n_drop:].tolist()))
+
+
+_LOOKED_FOR = ("transforms.json (instant-ngp, nerfstudio, NeRF-synthetic), poses_bounds.npy (LLFF), a COLMAP model "
+               "(cameras, images, points3D .bin/.txt here, in sparse/0/, sparse/ or 0/)")
+
+
+def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpness_quantile: float = 0.0) -> NerfDataset:
+    """Load a dataset in any form the module docstring lists. Raises EngineError naming the file/key at fault.
+
+    `min_sharpness_quantile` (train's --drop-blurry): drop that fraction of the frames, the blurriest.
+    """
+    from . import colmap_model, llff
+
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
+        raise EngineError(f"--downscale must be a positive integer, got {downscale!r}")
+    downscale = int(downscale)
+    q = min_sharpness_quantile
+    if isinstance(q, bool) or not isinstance(q, (int, float, np.floating, np.integer)) or not 0 <= q < 1:
+        raise EngineError(f"--drop-blurry must be a fraction from 0 up to (not including) 1, got {q!r}")
+    p = Path(path)
+    if not p.exists():
+        raise EngineError(f"{p}: no such file or folder")
+    if p.is_file() and p.suffix.lower() == ".json" or p.is_dir() and any(
+            (p / n).is_file() for n in ("transforms.json", "transforms_train.json")):
+        src = _read_transforms(_resolve_json(p), downscale, load_images)
+    elif llff.find(p) is not None:
+        src = llff.read(p, downscale, load_images)
+    elif colmap_model.find(p) is not None:
+        src = colmap_model.read(p, downscale, load_images)
+    elif p.is_dir():
+        raise EngineError(f"{p}: no dataset in this folder: no transforms.json, and no poses_bounds.npy or COLMAP "
+                          f"model; looked for {_LOOKED_FOR}")
+    else:
+        raise EngineError(f"{p}: not a dataset file: give a transforms.json, LLFF's poses_bounds.npy, a COLMAP "
+                          "model file, or the folder holding one")
+    return _finish(src, load_images, float(q))

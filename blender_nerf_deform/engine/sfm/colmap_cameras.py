@@ -64,8 +64,18 @@ def reconstruction_cameras(reconstruction) -> list[dict]:
             continue
         cam = image.camera
         pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
-        c2w = camera_to_world(np.asarray(pose.rotation.matrix()), np.asarray(pose.translation))
+        rotation, translation = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
+        if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
+            raise EngineError(f"image {image.name} (id {image.image_id}): its pose (cam_from_world) has non-finite values")
+        c2w = camera_to_world(rotation, translation)
         out.append({"name": image.name, "c2w": c2w,
                     "intrinsics": camera_intrinsics(cam.model.name, cam.params, cam.width, cam.height,
                                                     where=f"camera {cam.camera_id} of image {image.name}")})
     return sorted(out, key=lambda c: c["name"])
+
+
+def reconstruction_points(reconstruction) -> np.ndarray | None:
+    """(N, 3) positions of a pycolmap.Reconstruction's sparse points, None when it has none."""
+    if not reconstruction.num_points3D():
+        return None
+    return np.array([p.xyz for p in reconstruction.points3D.values()], dtype=np.float64)
