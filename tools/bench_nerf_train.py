@@ -1,13 +1,16 @@
 #!/usr/bin/env python3
-"""Benchmark: validation PSNR of NeRF training on lego_200 against wall-clock training time.
+"""Benchmark: validation PSNR of NeRF training (lego_200 by default; fox, fern, a room) against training time.
 
-Validation split: every 10th of the 90 views (r_0, r_18, ...: indices 0, 10, ..., 80) is held
-out; the other 81 train. PSNR is on white, over all held-out views, measured at the
+Validation split: every 10th view (lego's 90: indices 0, 10, ..., 80) is held
+out; the others train. PSNR is on white (photos without alpha: on the photo itself),
+over all held-out views, measured at the
 given training times (the time spent validating is not counted). Also reports the
 render time of one 200x200 validation frame, samples per ray and peak memory (RSS).
 
     flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench_nerf_train.py \\
         --data ../shared/datasets/lego_200 --seconds 600 --json /tmp/train.json
+    flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench_nerf_train.py \
+        --data ../shared/datasets/fox --downscale 4 --seconds 600 --json /tmp/fox.json
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
 from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
-from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions  # noqa: E402
+from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for  # noqa: E402
 
 
 def peak_rss_mb() -> float:
@@ -62,15 +65,22 @@ def main() -> int:
     ap.add_argument("--lr-final", type=float, default=None)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
+    ap.add_argument("--downscale", type=int, default=1, help="box-filter the images by this factor (fox: 4 → 270x480)")
+    ap.add_argument("--scene", default="auto", choices=("auto", "bounded", "unbounded"),
+                    help="the trainer's scene model (auto: unbounded for photos without alpha)")
+    ap.add_argument("--steps-per-diagonal", type=int, default=None)
+    ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
 
-    ds = load_dataset(args.data)
+    ds = load_dataset(args.data, downscale=args.downscale)
     val_idx = list(range(0, len(ds), 10))
     train = ds.subset([i for i in range(len(ds)) if i % 10])
     val = ds.subset(val_idx)
-    cfg = NerfConfig(aabb=ds.aabb.reshape(-1).tolist())
+    cfg = config_for(ds, args.scene)
+    if args.steps_per_diagonal:
+        cfg.steps_per_diagonal = args.steps_per_diagonal
     if args.log2_table:
         cfg.log2_table_size = args.log2_table
     if args.finest:
@@ -82,6 +92,8 @@ def main() -> int:
         opts.target_samples = args.target_samples
     if args.lr_final:
         opts.lr_final_factor = args.lr_final
+    if args.distortion is not None:
+        opts.distortion_weight = args.distortion
     torch.manual_seed(0)
     model = NerfModel(cfg).to(args.device)
     trainer = Trainer(model, train, opts)
@@ -106,7 +118,8 @@ def main() -> int:
     wall = time.perf_counter() - t0
     if marks:  # budget ended between marks: validate the final model at the end
         callback(trainer)
-    summary = {"config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
+    summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],
+               "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
                "results": results, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
                "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
                "threads": torch.get_num_threads(), "torch": torch.__version__,

@@ -542,7 +542,8 @@ _KERNELS_ON_NAN = """
 import numpy as np, torch
 from blender_nerf_deform.engine.nerf.encoding import HashEncoding
 from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
-from blender_nerf_deform.engine.nerf.march_kernels import march_cpu
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine.nerf.renderer import march
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.locate import TetLocator
 
@@ -551,11 +552,11 @@ x[::3] = float("nan"); x[1::3, 0] = float("inf"); x[2::3, 1] = -1e30
 out = HashEncoding(4, 2, 12, 4, 64)(x)
 assert torch.isfinite(out).all(), "non-finite encoding"
 o = torch.zeros(100, 3); d = torch.nn.functional.normalize(torch.randn(100, 3), dim=1)
-o[::2] = float("nan")
-t0, t1, u, rays = torch.zeros(100), torch.full((100,), 2.0), torch.full((100,), 0.5), torch.arange(100)
-t1[1::4] = float("inf")
+o[::2] = float("nan"); o[1::4] = 1e30; d[3::8] = float("inf")
 for box in ([[float("nan")] * 3, [1.0] * 3], [[-1.0] * 3, [1.0] * 3]):
-    march_cpu(o, d, t0, t1, u, 0.01, OccupancyGrid(torch.tensor(box), 16), rays)
+    march(o, d, OccupancyGrid(torch.tensor(box), 16), 0.01)
+unbounded = NerfModel(NerfConfig(contraction="linf", occ_resolution=16, log2_table_size=10, finest_resolution=64))
+march(o, d, unbounded.occupancy, 0.01, model=unbounded)
 V, T = box_cage((2, 2, 2))
 p = torch.rand(1000, 3, dtype=torch.float64); p[::2] = float("nan"); p[1::4] = 1e300
 assert (TetLocator(V, T, dtype=torch.float64).locate(p)[::2] == -1).all()

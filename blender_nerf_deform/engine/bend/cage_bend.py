@@ -132,6 +132,10 @@ class CageBend:
                 d[inside] = torch.einsum("nij,nj->ni", self.rotation[t], dirs[inside])
             # As in an undeformed render, the NeRF is empty wherever its own occupancy grid says so.
             keep = occ.occupied(p)
+        if self.model.background is not None:
+            # An unbounded NeRF's background (outside its inner box) is not in the inner grid: it stays.
+            box = self.model.aabb
+            keep |= ~inside & ~((positions >= box[0]) & (positions <= box[1])).all(dim=-1)
         # Outside every deformed tet: empty if the rest cage held it (vacated), else unchanged.
         outside = torch.nonzero(~inside & keep).squeeze(1)
         if len(outside):

@@ -47,6 +47,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of the initial weights and the ray sampling (default 0)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
+    p.add_argument("--scene", choices=("auto", "bounded", "unbounded"), default="auto",
+                   help="bounded: the NeRF lives in the dataset's box (objects on transparent backgrounds); unbounded: "
+                        "an inner box plus a contracted background for photos with a room or sky behind the object; "
+                        "auto (default): unbounded for photos without alpha")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/nerf.ckpt when it exists")
     p.add_argument("--overwrite", action="store_true", help="replace RUN_DIR/nerf.ckpt when it exists "
                    "(without --resume or --overwrite an existing checkpoint is an error)")

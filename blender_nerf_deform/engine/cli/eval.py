@@ -15,6 +15,9 @@ from ..nerf.evaluate import evaluate
 def main(args) -> int:
     model = load_nerf(args.nerf, device=args.device or "auto")
     ds = load_dataset(args.data, downscale=args.downscale)
+    import sys
+
+    print(f"read {ds.describe()}", file=sys.stderr)
     from tqdm import tqdm
 
     with tqdm(total=len(ds), unit="frame", dynamic_ncols=True) as bar:

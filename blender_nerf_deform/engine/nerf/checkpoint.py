@@ -6,6 +6,7 @@ Format (a dict written by `torch.save`, read by `torch.load(weights_only=True)`)
      "config": NerfConfig as a plain dict,
      "state": the model's state_dict (tensors),
      "occupancy": {"density": tensor, "mask": tensor},
+     "background": {"density": tensor, "mask": tensor}   (unbounded NeRFs only: the contracted grid),
      "trainer": optional plain dict + tensors to resume training}
 
 `save_nerf` writes to a temporary file in the same folder and renames it over the
@@ -40,6 +41,9 @@ def save_nerf(model: NerfModel, path, trainer_state: dict | None = None) -> None
         "occupancy": {"density": model.occupancy.density.cpu(), "mask": model.occupancy.mask.cpu(),
                       "resolution": model.occupancy.resolution},
     }
+    if model.background is not None:
+        payload["background"] = {"density": model.background.density.cpu(), "mask": model.background.mask.cpu(),
+                                 "resolution": model.background.resolution}
     if trainer_state is not None:
         payload["trainer"] = trainer_state
     atomic_write(path, lambda f: torch.save(payload, f))
@@ -93,6 +97,11 @@ def _check_arrays(data: dict, path) -> None:
     if not density.is_floating_point() or not bool(torch.isfinite(density).all()):
         raise EngineError(f"{path}: checkpoint `occupancy.density` holds NaN or inf (a diverged training run?)")
     _tensor(data["occupancy"], "mask", path, "occupancy")
+    if "background" in data:
+        density = _tensor(data["background"], "density", path, "background")
+        if not density.is_floating_point() or not bool(torch.isfinite(density).all()):
+            raise EngineError(f"{path}: checkpoint `background.density` holds NaN or inf (a diverged training run?)")
+        _tensor(data["background"], "mask", path, "background")
 
 
 def load_nerf(path, device="auto") -> NerfModel:
@@ -116,6 +125,15 @@ def load_nerf(path, device="auto") -> NerfModel:
         if model.occupancy.mask.numel() != n_cells or model.occupancy.density.numel() != n_cells:
             raise ValueError(f"occupancy grid of {model.occupancy.mask.numel()} cells, the config's "
                              f"occ_resolution {config.occ_resolution} needs {n_cells}")
+        if model.background is not None:
+            if not isinstance(data.get("background"), dict):
+                raise ValueError("an unbounded NeRF's checkpoint lacks its background occupancy grid")
+            bg = data["background"]
+            model.background.density = bg["density"].float().reshape(-1)
+            model.background.mask = bg["mask"].bool().reshape(-1) & model.background._shell
+            if model.background.density.numel() != n_cells:
+                raise ValueError(f"background grid of {model.background.density.numel()} cells, the config's "
+                                 f"occ_resolution {config.occ_resolution} needs {n_cells}")
     except EngineError as exc:
         raise EngineError(f"{path}: {exc}") from None
     except (RuntimeError, TypeError, ValueError, KeyError) as exc:

@@ -11,7 +11,12 @@ Public interface (other stages rely on these names):
   `features_from_encoding(encoding, inside) -> (density, geo)` and `color(geo, dirs) -> rgb`.
 - `resolve_device("auto"|"cpu"|"cuda")`, `device_summary()` (torch build, CUDA devices).
 
-Points outside the aabb have density 0. Directions need not be normalised.
+Bounded NeRFs (`contraction` "none", synthetic objects): the hash grid spans the aabb and
+points outside it have density 0. Unbounded NeRFs (`contraction` "linf", real captures
+with a room or sky around the object): `aabb` is the *inner box* (what extraction, cages
+and Blender's box use), the hash grid spans the contracted cube (contraction.py) so
+every point of space has a density, and `.background` is a second occupancy grid over
+the contracted space outside the inner box. Directions need not be normalised.
 """
 
 from __future__ import annotations
@@ -23,8 +28,11 @@ from dataclasses import dataclass, field
 import torch
 
 from ..errors import EngineError
+from .contraction import contract, inner_units
 from .encoding import HashEncoding, sh_encode
-from .occupancy import OccupancyGrid
+from .occupancy import ContractedGrid, OccupancyGrid
+
+CONTRACTIONS = ("none", "linf")
 
 
 @dataclass
@@ -46,6 +54,8 @@ class NerfConfig:
     occ_threshold: float = 0.01  # a cell is occupied when its opacity over one render step exceeds this
     steps_per_diagonal: int = 512  # render step = aabb diagonal / this
     background: list = field(default_factory=lambda: [1.0, 1.0, 1.0])  # default background (RGBA data: white)
+    contraction: str = "none"  # "linf": aabb is the inner box and the field covers all space (contraction.py)
+    near_plane: float = 0.0  # rays start this far from the camera (unbounded scenes: no floaters on the lens)
 
     @classmethod
     def from_dict(cls, d: dict) -> "NerfConfig":
@@ -74,6 +84,10 @@ class NerfConfig:
                 raise EngineError(f"config `{name}` = {v!r} is invalid: it must be {length} finite numbers")
         if not all(self.aabb[i + 3] > self.aabb[i] for i in range(3)):
             raise EngineError(f"config `aabb` = {self.aabb!r} is not a box (max > min on every axis)")
+        if self.contraction not in CONTRACTIONS:
+            raise EngineError(f"config `contraction` = {self.contraction!r} is invalid: one of {', '.join(CONTRACTIONS)}")
+        if not _finite_number(self.near_plane) or self.near_plane < 0:
+            raise EngineError(f"config `near_plane` = {self.near_plane!r} is invalid: it must be a finite number >= 0")
         if not _finite_number(self.occ_threshold) or self.occ_threshold < 0:
             raise EngineError(f"config `occ_threshold` = {self.occ_threshold!r} is invalid: it must be a finite number >= 0")
 
@@ -157,6 +171,11 @@ class NerfModel(torch.nn.Module):
         self.density_net = _mlp(self.encoding.out_dim, config.density_hidden, 1, 1 + config.geo_feat_dim)
         self.color_net = _mlp(1 + config.geo_feat_dim + config.sh_degree**2, config.color_hidden, config.color_layers, 3)
         self.occupancy = OccupancyGrid(self.aabb, config.occ_resolution)
+        self.background = ContractedGrid(self.aabb, config.occ_resolution) if self.unbounded else None
+
+    @property
+    def unbounded(self) -> bool:
+        return self.config.contraction != "none"
 
     @property
     def device(self) -> torch.device:
@@ -167,13 +186,20 @@ class NerfModel(torch.nn.Module):
         out = super()._apply(fn, *args, **kwargs)
         if "occupancy" in self.__dict__:
             self.occupancy.to(self.aabb.device)
+            if self.background is not None:
+                self.background.to(self.aabb.device)
         return out
 
     def normalize(self, points: torch.Tensor) -> torch.Tensor:
+        """World points → the hash grid's [0, 1]^3 (through the contraction for unbounded NeRFs)."""
+        if self.unbounded:
+            center, half = 0.5 * (self.aabb[0] + self.aabb[1]), 0.5 * (self.aabb[1] - self.aabb[0])
+            return (contract(inner_units(points, center, half)) + 2.0) * 0.25
         return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
 
     def encode(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Hash encoding (N, L*F) of world points, whether each is inside the aabb, and the normalised points."""
+        """Hash encoding (N, L*F) of world points, whether each is inside the field's domain (the aabb, or all
+        of space when unbounded), and the normalised points."""
         x = self.normalize(points)
         inside = ((x >= 0) & (x <= 1)).all(dim=-1)
         return self.encoding(x), inside, x

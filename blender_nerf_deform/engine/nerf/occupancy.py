@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import torch
 
+from .contraction import contract, inner_units, uncontract
+
 
 class OccupancyGrid:
     def __init__(self, aabb: torch.Tensor, resolution: int = 128):
@@ -115,13 +117,11 @@ class OccupancyGrid:
             rb = r // block
             ib = torch.arange(rb**3, device=dev)
             xyz = torch.stack([ib % rb, (ib // rb) % rb, ib // (rb * rb)], dim=-1).float()
-            pts = self.aabb[0] + (xyz + torch.rand_like(xyz)) * self.cell_size * block
+            pts = self._to_world(self.aabb[0] + (xyz + torch.rand_like(xyz)) * self.cell_size * block)
             new = torch.cat([density_fn(pts[s: s + chunk]) for s in range(0, pts.shape[0], chunk)])
             full = new.reshape(rb, 1, rb, 1, rb, 1).expand(rb, block, rb, block, rb, block).reshape(-1)
             self.density = torch.maximum(self.density * decay, full)
-            opacity = self.density * step_size
-            self.mask = opacity > min(threshold, float(opacity.mean()))
-            self._bounds = None
+            self._threshold(step_size, threshold)
             return
         if n_uniform is None and n_occupied is None:
             idx = torch.arange(n, device=dev)
@@ -139,7 +139,72 @@ class OccupancyGrid:
         # order, so a seeded training run does not depend on the order of the writes.
         self.density.scatter_reduce_(0, idx, torch.maximum(self.density[idx] * decay, new), reduce="amax",
                                      include_self=False)
+        self._threshold(step_size, threshold)
+
+    def _threshold(self, step_size: float, threshold: float) -> None:
         opacity = self.density * step_size
-        thresh = min(threshold, float(opacity.mean()))
-        self.mask = opacity > thresh
+        self.mask = opacity > min(threshold, float(opacity.mean()))
+        self._bounds = None
+
+    def _to_world(self, grid_points: torch.Tensor) -> torch.Tensor:
+        """Points in the grid's own coordinates → world (the identity here; see ContractedGrid)."""
+        return grid_points
+
+
+class ContractedGrid(OccupancyGrid):
+    """Occupancy of an unbounded NeRF's background: a cubic grid over contracted space [-2, 2]^3
+    (contraction.py) of which only the shell outside the inner box is used (the inner box has its own,
+    finer world-space grid; the shell's inner face lies on cell boundaries when the resolution is a
+    multiple of 4). `aabb` here is the contracted cube; `inner` is the world inner box.
+
+    `occupied(world points)`, `cell_index(world points)`, `cell_centers` (world points) and `update`
+    behave as OccupancyGrid's, through the contraction.
+    """
+
+    def __init__(self, inner: torch.Tensor, resolution: int = 128):
+        inner = torch.as_tensor(inner, dtype=torch.float32).reshape(2, 3)
+        super().__init__(torch.tensor([[-2.0] * 3, [2.0] * 3], device=inner.device), resolution)
+        self.inner = inner.clone()
+        self._shell = self._shell_cells()
+        self.mask = self.mask & self._shell
+
+    @property
+    def center(self) -> torch.Tensor:
+        return 0.5 * (self.inner[0] + self.inner[1])
+
+    @property
+    def half(self) -> torch.Tensor:
+        return 0.5 * (self.inner[1] - self.inner[0])
+
+    def _shell_cells(self) -> torch.Tensor:
+        """Cells whose centre lies outside the inner box [-1, 1]^3 of contracted space."""
+        r = self.resolution
+        idx = torch.arange(r**3, device=self.aabb.device)
+        xyz = torch.stack([idx % r, (idx // r) % r, idx // (r * r)], dim=-1).float()
+        c = self.aabb[0] + (xyz + 0.5) * self.cell_size
+        return c.abs().amax(dim=-1) > 1.0
+
+    def to(self, device) -> "ContractedGrid":
+        super().to(device)
+        self.inner = self.inner.to(device)
+        self._shell = self._shell.to(device)
+        return self
+
+    def contracted(self, points: torch.Tensor) -> torch.Tensor:
+        return contract(inner_units(points, self.center, self.half))
+
+    def cell_index(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return super().cell_index(self.contracted(points))
+
+    def cell_centers(self, idx: torch.Tensor, jitter: bool = True) -> torch.Tensor:
+        return self._to_world(super().cell_centers(idx, jitter))
+
+    def _to_world(self, grid_points: torch.Tensor) -> torch.Tensor:
+        return self.center + uncontract(grid_points) * self.half
+
+    def _threshold(self, step_size: float, threshold: float) -> None:
+        opacity = self.density * step_size
+        shell = self._shell
+        mean = float(opacity[shell].mean()) if bool(shell.any()) else 0.0
+        self.mask = (opacity > min(threshold, mean)) & shell
         self._bounds = None

@@ -14,19 +14,25 @@ the ray-bending stage:
   depth, in chunks of `chunk` rays so memory stays bounded.
 - `render_image(model, camera, ...)`: a whole frame as straight-alpha RGBA.
 
-Sampling: each ray is clipped to the box of the occupied cells, marched with a
-constant step (`config.render_step`), and only samples in occupied cells of the
-occupancy grid are kept. Hooks for ray bending:
+Sampling (march_kernels.py): each ray is clipped to the box of the occupied cells and
+marched with a constant step (`config.render_step`) on a lattice measured from its
+origin; only samples in occupied cells are kept. An unbounded NeRF's rays also march
+through its background grid before and after the box, with steps growing with the
+distance from the box, out to `contraction.FAR_RADIUS` inner half-sizes. Each sample
+carries its own step length. Hooks for ray bending:
 
-- `occupancy=`: any `OccupancyGrid` (e.g. of a deformed space) instead of the model's own;
+- `occupancy=`: any `OccupancyGrid` (e.g. of a deformed space) instead of the model's own
+  inner grid (an unbounded NeRF's background grid is used as it is);
 - `sample_transform(positions[S,3], dirs[S,3]) -> (positions, dirs, keep[S])`: called
   between sampling and the field query; samples with keep False get density 0.
 
-Early ray termination: a first pass evaluates density only and computes
-transmittance; samples behind transmittance `early_stop_eps` are dropped, and
-when rendering without gradients the colour MLP runs only on samples whose
-weight exceeds `weight_threshold`. With gradients (training) the surviving
-samples are re-evaluated with autograd.
+Early ray termination, in rounds: a chunk's live rays are marched a few occupied
+samples at a time (k per ray, growing as rays retire, ~SAMPLES_PER_ROUND per round),
+those samples' density is evaluated, and rays whose transmittance fell below
+`early_stop_eps` retire before the next round. So a ray stops marching at the first
+opaque surface, also in real captures where every cell is occupied. Without gradients
+the colour MLP runs only on samples whose weight exceeds `weight_threshold`; with
+gradients (training) the samples that can still be seen are re-evaluated with autograd.
 
 Depth is the expected distance along the (unit) ray direction, divided by alpha;
 0 where alpha is 0.
@@ -43,6 +49,7 @@ import torch
 from .. import backend
 from . import march_kernels
 from .camera import Camera  # noqa: F401  (re-exported: renderer.Camera is part of the interface)
+from .contraction import FAR_RADIUS
 from .lens import camera_directions
 from .occupancy import OccupancyGrid
 
@@ -73,40 +80,91 @@ def ray_box(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor) -> tup
     return near, far
 
 
-def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, step: float,
-          near: float = 0.0, perturb: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """Samples of rays in occupied cells: (ray index (S,), distance t (S,)), sorted by ray then t.
+BG_STEP_FACTOR = 2.0  # background step at the inner box: this many inner steps, growing with distance
+SAMPLES_PER_ROUND = 1 << 16  # samples marched per round of a chunk: k per live ray adapts to this
+K_MIN, K_MAX = 8, 512
 
-    Each ray is clipped to the occupied box and sampled at t = (k + u) * step, k integer,
-    u = 0.5 (or uniform random per ray when `perturb`): the samples lie on a lattice
-    measured from the ray's origin, not from where it enters the box, so which
-    occupancy grid clips the ray (the NeRF's own, or one for a deformed space) does
-    not move them, and moving the scene rigidly is exactly moving the camera back.
+
+def _grids(model, occupancy: OccupancyGrid, step: float, background: bool) -> march_kernels.Grids:
+    box = occupancy.aabb.reshape(2, 3)
+    g = march_kernels.Grids(lo=box[0].contiguous(), scale=(occupancy.resolution / (box[1] - box[0])).contiguous(),
+                            res=occupancy.resolution, mask=occupancy.mask, step=float(step))
+    bg = getattr(model, "background", None) if background else None
+    if bg is not None:
+        g.has_bg = True
+        g.center, g.inv_half = bg.center.contiguous(), (1.0 / bg.half).contiguous()
+        g.bg_res, g.bg_mask, g.bg_step = bg.resolution, bg.mask, float(step) * BG_STEP_FACTOR
+    return g
+
+
+def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, grids: march_kernels.Grids,
+                near: float = 0.0, perturb: bool = False) -> march_kernels.MarchState:
+    """Where each ray starts: its segment ends and phase (`march_kernels.MarchState`).
+
+    In the box the samples are t = (j + u) * step, j integer, u = 0.5 (or uniform random per ray
+    when `perturb`): a lattice measured from the ray's origin, not from where it enters the box,
+    so which occupancy grid clips the ray (the NeRF's own, or one for a deformed space) does not
+    move them, and moving the scene rigidly is exactly moving the camera back.
     """
-    n = origins.shape[0]
-    dev = origins.device
-    empty = (torch.empty(0, dtype=torch.int64, device=dev), torch.empty(0, device=dev))
-    if n == 0 or not occupancy.any():
-        return empty
-    t0, t1 = ray_box(origins, dirs, occupancy.bounds())
-    t0 = t0.clamp_min(near)
-    hit = t1 > t0
-    if not bool(hit.any()):
-        return empty
-    rays = torch.nonzero(hit).flatten()
-    t0, t1 = t0[rays], t1[rays]
-    u = torch.rand(rays.shape[0], device=dev) if perturb else torch.full((rays.shape[0],), 0.5, device=dev)
-    # The first lattice point at or after the box entry: no sample lies outside the grid.
-    t0 = torch.ceil((t0 - u * step) / step) * step
-    if backend.use_kernels(dev) and occupancy.mask.device.type == "cpu":
-        return march_kernels.march_cpu(origins[rays], dirs[rays], t0, t1, u, step, occupancy, rays)
-    k_max = int(math.ceil(float((t1 - t0).max()) / step))
-    t = t0[:, None] + (torch.arange(k_max, device=dev, dtype=torch.float32)[None, :] + u[:, None]) * step  # (R, K)
-    valid = t < t1[:, None]
-    pts = origins[rays][:, None, :] + dirs[rays][:, None, :] * t[..., None]
-    valid &= occupancy.occupied(pts.reshape(-1, 3)).reshape(valid.shape)
-    r, k = torch.nonzero(valid, as_tuple=True)
-    return rays[r], t[r, k]
+    n, dev, step = origins.shape[0], origins.device, grids.step
+    u = torch.rand(n, device=dev) if perturb else torch.full((n,), 0.5, device=dev)
+    if occupancy.any():
+        t_in, t_out = ray_box(origins, dirs, occupancy.bounds())
+    else:
+        t_in = t_out = torch.zeros(n, device=dev)
+    t_in = t_in.clamp_min(near)
+    hit = t_out > t_in
+    # Lattice indices of the first sample at or after the entry and one past the last before the exit.
+    t_in64, t_out64, u64 = t_in.double(), t_out.double(), u.double()
+    j0 = torch.ceil(t_in64 / step - u64)
+    j1 = torch.ceil(t_out64 / step - u64)
+    bad = ~hit | ~torch.isfinite(j0) | ~torch.isfinite(j1) | (j1 - j0 > march_kernels.MAX_STEPS_PER_RAY)
+    j0 = torch.where(bad, torch.zeros_like(j0), j0.clamp(-march_kernels.MAX_STEPS_PER_RAY, march_kernels.MAX_STEPS_PER_RAY))
+    j1 = torch.where(bad, torch.zeros_like(j1), j1.clamp(-march_kernels.MAX_STEPS_PER_RAY, march_kernels.MAX_STEPS_PER_RAY))
+    j0, j1 = j0.long(), torch.maximum(j0, j1).long()
+    if grids.has_bg:
+        far_box = torch.stack([grids.center - FAR_RADIUS / grids.inv_half, grids.center + FAR_RADIUS / grids.inv_half])
+        _, t_far = ray_box(origins, dirs, far_box)
+        t_far = torch.where(torch.isfinite(t_far), t_far, torch.full_like(t_far, near))
+        t_in = torch.where(hit, t_in, t_far)
+        t_out = torch.where(hit, t_out, t_far)
+        phase = torch.full((n,), march_kernels.PHASE_BEFORE, dtype=torch.int8, device=dev)
+        phase[~(t_far > near)] = march_kernels.PHASE_DONE
+    else:
+        t_far = t_out
+        phase = torch.where(hit, march_kernels.PHASE_INNER, march_kernels.PHASE_DONE).to(torch.int8)
+    return march_kernels.MarchState(phase=phase.contiguous(), j=j0.contiguous(), j_end=j1.contiguous(),
+                                    t=torch.full((n,), float(near), device=dev), t_in=t_in.contiguous(),
+                                    t_out=t_out.contiguous(), t_far=t_far.contiguous(), u=u.contiguous())
+
+
+def _round_samples(origins, dirs, alive, state, k, grids):
+    """One round of marching: the samples (ray index, t, dt), sorted by ray then t."""
+    ts, dts, counts = march_kernels.march_round(origins, dirs, alive, state, k, grids)
+    valid = torch.arange(k, device=origins.device)[None, :] < counts.to(origins.device)[:, None]
+    a, slot = torch.nonzero(valid, as_tuple=True)
+    return alive[a], ts.to(origins.device)[a, slot], dts.to(origins.device)[a, slot]
+
+
+def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, step: float,
+          near: float = 0.0, perturb: bool = False, model=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every sample of the rays in occupied cells, without early termination: (ray index (S,), t (S,)),
+    sorted by ray then t. With an unbounded `model`, its background samples too."""
+    n, dev = origins.shape[0], origins.device
+    grids = _grids(model, occupancy, step, background=model is not None)
+    if n == 0 or not (occupancy.any() or grids.has_bg):
+        return torch.empty(0, dtype=torch.int64, device=dev), torch.empty(0, device=dev)
+    state = march_setup(origins, dirs, occupancy, grids, near, perturb)
+    alive = torch.nonzero(state.phase < march_kernels.PHASE_DONE).flatten()
+    rays, ts = [torch.empty(0, dtype=torch.int64, device=dev)], [torch.empty(0, device=dev)]
+    while alive.numel():
+        r, t, _ = _round_samples(origins, dirs, alive, state, K_MAX, grids)
+        rays.append(r)
+        ts.append(t)
+        alive = alive[state.phase[alive] < march_kernels.PHASE_DONE]
+    rays, ts = torch.cat(rays), torch.cat(ts)
+    order = torch.sort(rays, stable=True).indices
+    return rays[order], ts[order]
 
 
 def _exclusive_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> torch.Tensor:
@@ -143,60 +201,91 @@ def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
     return cat(sig), cat(geo), (cat(encs) if keep_encoding else None), (cat(xs) if keep_encoding else None)
 
 
-def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad):
-    n = o.shape[0]
-    ray_idx, t = march(o, d, occ, step, perturb=perturb)
-    pts = o[ray_idx] + d[ray_idx] * t[:, None]
-    sdirs = d[ray_idx]
-    keep = None
-    if sample_transform is not None and ray_idx.numel():
-        pts, sdirs, keep = sample_transform(pts, sdirs)
-    n_density = ray_idx.numel()
-    with torch.no_grad():
-        if keep is not None and not grad:
-            # Samples the transform dropped (vacated or unoccupied rest space) never reach the field.
-            kept = torch.nonzero(keep).flatten()
-            s_k, g_k, _, _ = _density_pass(model, pts[kept])
-            sigma = s_k.new_zeros(pts.shape[0])
-            geo = g_k.new_zeros(pts.shape[0], g_k.shape[1])
-            sigma[kept], geo[kept] = s_k, g_k
-            enc = xn = None
-        else:
-            sigma, geo, enc, xn = _density_pass(model, pts, keep_encoding=grad)
-            if keep is not None:
-                sigma = sigma * keep
-        trans = _exclusive_transmittance(sigma * step, ray_idx, n)
-    if grad:
-        # Second pass with autograd on the samples that can still be seen; the encoding of the
-        # first pass is reused (only its backward runs) where the CPU kernels apply.
-        sel = torch.nonzero((trans > early_stop_eps) & (sigma > 0)).flatten()
-        ray_idx, t, sdirs = ray_idx[sel], t[sel], sdirs[sel]
-        xs = xn[sel]
-        inside = ((xs >= 0) & (xs <= 1)).all(dim=-1)
-        sigma, geo = model.features_from_encoding(model.encoding.reuse(enc[sel], xs), inside)
-        if keep is not None:
-            sigma = sigma * keep[sel]
-        rgb = model.color(geo, sdirs)
-        tau = sigma * step
-        trans = _exclusive_transmittance(tau, ray_idx, n)
-        w = trans * (1.0 - torch.exp(-tau))
-        n_color = sel.numel()
-    else:
-        w_all = trans * (1.0 - torch.exp(-sigma * step))
-        sel = torch.nonzero(w_all > weight_threshold).flatten()
-        ray_idx, t, w = ray_idx[sel], t[sel], w_all[sel]
-        rgb = model.color(geo[sel], sdirs[sel]) if sel.numel() else geo.new_zeros(0, 3)
-        n_color = sel.numel()
+def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
+                  samples_out=None):
+    """Rays in rounds: march a few samples per live ray, evaluate them, retire the rays whose
+    transmittance is spent, march on with the others."""
+    n, dev = o.shape[0], o.device
+    color, alpha, depth = o.new_zeros(n, 3), o.new_zeros(n), o.new_zeros(n)
+    grids = _grids(model, occ, step, background=True)
+    if n == 0 or not (occ.any() or grids.has_bg):
+        return color, alpha, depth, 0, 0
+    state = march_setup(o, d, occ, grids, near, perturb)
+    alive = torch.nonzero(state.phase < march_kernels.PHASE_DONE).flatten()
+    transmittance = torch.ones(n, dtype=torch.float64, device=dev)
+    n_density = n_color = 0
+    kept_parts = []  # with gradients: the samples to re-evaluate, per round
+    while alive.numel():
+        k = int(min(K_MAX, max(K_MIN, SAMPLES_PER_ROUND // alive.numel())))
+        ray_idx, t, dt = _round_samples(o, d, alive, state, k, grids)
+        if ray_idx.numel():
+            pts = o[ray_idx] + d[ray_idx] * t[:, None]
+            sdirs = d[ray_idx]
+            keep = None
+            if sample_transform is not None:
+                pts, sdirs, keep = sample_transform(pts, sdirs)
+            with torch.no_grad():
+                if keep is not None and not grad:
+                    # Samples the transform dropped (vacated or unoccupied rest space) never reach the field.
+                    kept = torch.nonzero(keep).flatten()
+                    s_k, g_k, _, _ = _density_pass(model, pts[kept])
+                    sigma = s_k.new_zeros(pts.shape[0])
+                    geo = g_k.new_zeros(pts.shape[0], g_k.shape[1])
+                    sigma[kept], geo[kept] = s_k, g_k
+                    enc = xn = None
+                    n_density += kept.numel()
+                else:
+                    sigma, geo, enc, xn = _density_pass(model, pts, keep_encoding=grad)
+                    if keep is not None:
+                        sigma = sigma * keep
+                    n_density += ray_idx.numel()
+                tau = sigma * dt
+                trans = _exclusive_transmittance(tau, ray_idx, n) * transmittance[ray_idx].to(tau.dtype)
+            if grad:
+                sel = torch.nonzero((trans > early_stop_eps) & (sigma > 0)).flatten()
+                kept_parts.append((ray_idx[sel], t[sel], dt[sel], enc[sel], xn[sel], sdirs[sel],
+                                   None if keep is None else keep[sel]))
+            else:
+                w_all = trans * (1.0 - torch.exp(-tau))
+                sel = torch.nonzero(w_all > weight_threshold).flatten()
+                if sel.numel():
+                    r_s, w = ray_idx[sel], w_all[sel]
+                    rgb = model.color(geo[sel], sdirs[sel])
+                    color.index_add_(0, r_s, w[:, None] * rgb)
+                    alpha.index_add_(0, r_s, w)
+                    depth.index_add_(0, r_s, w * t[sel])
+                    n_color += sel.numel()
+            transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
+        alive = alive[(state.phase[alive] < march_kernels.PHASE_DONE) & (transmittance[alive] > early_stop_eps)]
+    if not grad:
+        return color, alpha, depth, n_density, n_color
+    if not kept_parts:
+        return color, alpha, depth, n_density, 0
+    ray_idx, t, dt, enc, xs, sdirs, keep = (torch.cat(p) if p[0] is not None else None for p in zip(*kept_parts))
+    order = torch.sort(ray_idx, stable=True).indices  # rounds came ray-interleaved: back to ray, then t
+    ray_idx, t, dt, enc, xs, sdirs = ray_idx[order], t[order], dt[order], enc[order], xs[order], sdirs[order]
+    # Second pass with autograd on the samples that can still be seen; the encoding of the first
+    # pass is reused (only its backward runs) where the CPU kernels apply.
+    inside = ((xs >= 0) & (xs <= 1)).all(dim=-1)
+    sigma, geo = model.features_from_encoding(model.encoding.reuse(enc, xs), inside)
+    if keep is not None:
+        sigma = sigma * keep[order]
+    rgb = model.color(geo, sdirs)
+    tau = sigma * dt
+    trans = _exclusive_transmittance(tau, ray_idx, n)
+    w = trans * (1.0 - torch.exp(-tau))
     color = _segment_sum(w[:, None] * rgb, ray_idx, n)
     alpha = _segment_sum(w, ray_idx, n)
     depth = _segment_sum(w * t, ray_idx, n)
-    return color, alpha, depth, n_density, n_color
+    if samples_out is not None:
+        samples_out.append((ray_idx, t, dt, w))
+    return color, alpha, depth, n_density, ray_idx.numel()
 
 
 def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=None, chunk: int = 4096,
                 occupancy: OccupancyGrid | None = None, sample_transform: SampleTransform | None = None,
                 step: float | None = None, perturb: bool = False, early_stop_eps: float = 1e-4,
-                weight_threshold: float = 1e-4, progress: Callable[[int, int], None] | None = None) -> dict:
+                weight_threshold: float = 1e-4, near: float | None = None, return_samples: bool = False, progress: Callable[[int, int], None] | None = None) -> dict:
     """Render rays (origins (N,3), unit dirs (N,3), world frame) in chunks of `chunk` rays.
 
     Returns a dict: `color` (N,3) premultiplied (composited on black), `alpha` (N,),
@@ -208,12 +297,19 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     """
     occ = occupancy if occupancy is not None else model.occupancy
     step = float(step if step is not None else model.config.render_step)
+    near = float(model.config.near_plane if near is None else near)
     grad = torch.is_grad_enabled()
+    samples = [] if return_samples and grad else None
+    n_chunks_with_samples = 0
     outs, n_den, n_col = [], 0, 0
     total = origins.shape[0]
     for s in range(0, total, chunk):
         c, a, dp, nd, nc = _render_chunk(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
-                                         sample_transform, perturb, early_stop_eps, weight_threshold, grad)
+                                         sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
+                                         samples)
+        if samples is not None and len(samples) > n_chunks_with_samples:
+            n_chunks_with_samples = len(samples)
+            samples[-1] = (samples[-1][0] + s,) + samples[-1][1:]  # ray indices of the whole batch
         outs.append((c, a, dp))
         n_den += nd
         n_col += nc
@@ -230,8 +326,12 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
     rgb = color + (1.0 - alpha)[:, None] * bg
     depth = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
-    return {"color": color, "alpha": alpha, "depth": depth, "rgb": rgb,
-            "n_density_samples": n_den, "n_color_samples": n_col}
+    out = {"color": color, "alpha": alpha, "depth": depth, "rgb": rgb,
+           "n_density_samples": n_den, "n_color_samples": n_col}
+    if samples is not None:
+        # With gradients: the samples that were composited (ray index, t, dt, weight), sorted by ray then t.
+        out["samples"] = tuple(torch.cat(p) for p in zip(*samples)) if samples else None
+    return out
 
 
 @torch.no_grad()

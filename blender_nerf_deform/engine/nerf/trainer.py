@@ -12,13 +12,21 @@ What makes it fast on CPU (BENCHMARKS.md has the figures):
   near the visible surfaces get a gradient.
 
 Random backgrounds: every ray composites prediction and target on the same
-random colour, so the background is not baked into the density.
+random colour, so the background is not baked into the density. Photos without
+alpha are opaque everywhere: there the random colour is what makes the NeRF model
+what lies behind the object (an unbounded NeRF, `scene_model="unbounded"`), never
+a flat colour.
+
+Which model (`scene_model`): "bounded" (the field lives in the dataset's box; RGBA
+objects), "unbounded" (the dataset's inner box plus a contracted background:
+contraction.py), or "auto": unbounded for photos without alpha, bounded otherwise.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +64,30 @@ class TrainOptions:
     checkpoint_path: str | None = None
     checkpoint_every_s: float = 120.0
     seed: int = 0
+    distortion_weight: float | None = None  # None: 0.002 for unbounded NeRFs, 0 for bounded ones
+
+
+def distortion_loss(ray_idx: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, w: torch.Tensor, n_rays: int,
+                    scale: float) -> torch.Tensor:
+    """mip-NeRF 360's distortion loss, mean over rays: sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 ds_i.
+
+    It pulls each ray's weights together (a surface, not a fog), which is what lets rays of a
+    real capture terminate after a few samples. Distances are warped, s = 1 - 1 / (1 + t / scale),
+    so the far background does not dominate. Samples sorted by ray then t; O(samples) through
+    per-ray exclusive prefix sums: sum_ij = 2 sum_i w_i (s_i W_<i - (ws)_<i).
+    """
+    s = 1.0 - 1.0 / (1.0 + t / scale)
+    ds = dt / scale / (1.0 + t / scale) ** 2
+    counts = torch.bincount(ray_idx, minlength=n_rays)
+    starts = (torch.cumsum(counts, 0) - counts)[ray_idx]
+
+    def exclusive(x):
+        c = torch.cumsum(x, 0) - x
+        return c - c[starts]
+
+    cross = 2.0 * (w * (s * exclusive(w) - exclusive(w * s))).sum()
+    own = (w * w * ds).sum() / 3.0
+    return (cross + own) / max(n_rays, 1)
 
 
 class Trainer:
@@ -70,6 +102,13 @@ class Trainer:
         n, h, w = dataset.images.shape[:3]
         self.n_images, self.h, self.w = n, h, w
         self.pixels = torch.from_numpy(dataset.images.reshape(-1, 4)).to(dev)
+        # Pixels a mask excludes (nerfstudio's mask_path: 0 = ignore) are never drawn.
+        masks = getattr(dataset, "masks", None)
+        self.valid_pixels = None
+        if masks is not None:
+            self.valid_pixels = torch.nonzero(torch.from_numpy(np.asarray(masks).reshape(-1))).flatten().to(dev)
+            if self.valid_pixels.numel() == 0:
+                raise EngineError("the dataset's masks exclude every pixel: nothing to train on")
         self.c2w = torch.tensor(np.stack([c.c2w[:3, :4] for c in dataset.cameras]), dtype=torch.float32, device=dev)
         self.intr = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in dataset.cameras], dtype=torch.float32, device=dev)
         # Distorted cameras: each distinct lens, and which one each image has (-1: pinhole).
@@ -91,11 +130,18 @@ class Trainer:
         # First batch: as if every ray took half a diagonal of samples (the grid starts all occupied).
         self.n_rays = max(64, min(self.opt.init_rays, 2 * self.opt.target_samples // model.config.steps_per_diagonal))
         self.last = {}
+        self.grids = [model.occupancy] + ([model.background] if model.background is not None else [])
+        dw = self.opt.distortion_weight
+        self.distortion = float(dw if dw is not None else (0.002 if model.background is not None else 0.0))
+        self.distortion_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
 
     # --- pieces of a step ---------------------------------------------------------------------
     def sample_rays(self, n_rays: int):
         dev = self.device
-        idx = torch.randint(0, self.pixels.shape[0], (n_rays,), device=dev)
+        if self.valid_pixels is None:
+            idx = torch.randint(0, self.pixels.shape[0], (n_rays,), device=dev)
+        else:
+            idx = self.valid_pixels[torch.randint(0, self.valid_pixels.numel(), (n_rays,), device=dev)]
         img = idx // (self.h * self.w)
         pix = idx % (self.h * self.w)
         j = (pix // self.w).float()
@@ -138,10 +184,12 @@ class Trainer:
         if self.step_count < self.opt.occ_warmup_steps:
             # Every cell, but through blocks of 2^3 cells for the first half of the warmup (8x cheaper).
             block = 2 if self.step_count < self.opt.occ_warmup_steps // 2 else 1
-            m.occupancy.update(m.density, step, m.config.occ_threshold, block=block)
+            for grid in self.grids:
+                grid.update(m.density, step, m.config.occ_threshold, block=block)
         else:
-            k = int(m.occupancy.resolution**3 * self.opt.occ_fraction)
-            m.occupancy.update(m.density, step, m.config.occ_threshold, n_uniform=k, n_occupied=k)
+            for grid in self.grids:
+                k = int(grid.resolution**3 * self.opt.occ_fraction)
+                grid.update(m.density, step, m.config.occ_threshold, n_uniform=k, n_occupied=k)
         m.train(was)
 
     def _optimizer_step(self, lr: float) -> None:
@@ -167,8 +215,11 @@ class Trainer:
         else:
             bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
-        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True)
-        loss = torch.mean((out["rgb"] - tgt) ** 2)
+        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0)
+        loss = mse = torch.mean((out["rgb"] - tgt) ** 2)
+        if self.distortion > 0 and out.get("samples") is not None:
+            r, t, dt, w = out["samples"]
+            loss = loss + self.distortion * distortion_loss(r, t, dt, w, self.n_rays, self.distortion_scale)
         self.optimizer.zero_grad(set_to_none=True)
         n_samples = out["n_color_samples"]
         if n_samples:
@@ -181,7 +232,7 @@ class Trainer:
         self.n_rays = int(min(self.opt.max_rays, 2 * self.n_rays, max(64, 0.7 * self.n_rays + 0.3 * want)))
         self.step_count += 1
         self.elapsed += time.perf_counter() - t_start
-        lv = float(loss.detach())
+        lv = float(mse.detach())
         self.last = {"loss": lv, "psnr": -10 * math.log10(max(lv, 1e-10)), "rays": o.shape[0],
                      "samples_per_ray": per_ray, "density_samples_per_ray": den_per_ray}
         return self.last
@@ -277,6 +328,22 @@ class Trainer:
 
 
 DEFAULT_SECONDS = 300.0
+SCENE_MODELS = ("auto", "bounded", "unbounded")
+
+
+def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
+    """The model for a dataset: bounded in its box, or unbounded around its inner box (see the module
+    docstring). The unbounded hash grid spans the contracted cube, of which the inner box is the
+    middle half per axis: its finest resolution doubles so the inner box keeps the bounded one's."""
+    unbounded = scene_model == "unbounded" or (scene_model == "auto" and not ds.has_alpha)
+    if not unbounded:
+        return NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)])
+    inner = np.asarray(getattr(ds, "inner_aabb", None) if getattr(ds, "inner_aabb", None) is not None else ds.aabb,
+                       dtype=np.float64).reshape(2, 3)
+    base = NerfConfig()
+    half = float((inner[1] - inner[0]).max() / 2)
+    return NerfConfig(aabb=[float(v) for v in inner.reshape(-1)], contraction="linf",
+                      finest_resolution=2 * base.finest_resolution, near_plane=0.05 * half)
 SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.manual_seed accepts
 LOCK_NAME = ".train.lock"
 
@@ -294,7 +361,7 @@ def check_budget(steps=None, max_seconds=None, seed: int = 0, checkpoint_every: 
 
 def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
                  checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
-                 seed: int = 0, overwrite: bool = False) -> dict:
+                 seed: int = 0, overwrite: bool = False, scene_model: str = "auto", drop_blurry: float = 0.0) -> dict:
     """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
 
     `seed` seeds the initial weights as well as the trainer's sampling, so that a run of a fixed
@@ -307,10 +374,14 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
     created; a run refused later removes the folder again if it made it and left it empty.
     """
     check_budget(steps, max_seconds, seed, checkpoint_every)
+    if scene_model not in SCENE_MODELS:
+        raise EngineError(f"--scene {scene_model!r}: one of {', '.join(SCENE_MODELS)}")
     dev = resolve_device(device)
     if steps is None and max_seconds is None:
         max_seconds = DEFAULT_SECONDS
-    ds = load_dataset(data, downscale=downscale)
+    ds = load_dataset(data, downscale=downscale, min_sharpness_quantile=drop_blurry)
+    if progress:
+        print(f"read {ds.describe()}", file=sys.stderr)
     out = Path(out_dir)
     ckpt = out / "nerf.ckpt"
     _check_replace(ckpt, resume, overwrite)
@@ -320,7 +391,7 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
     try:
         with folder_lock(out, LOCK_NAME, holder="another train process"):
             return _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every,
-                                 progress, config_overrides, should_stop, seed)
+                                 progress, config_overrides, should_stop, seed, scene_model)
     except EngineError:
         if created:
             try:
@@ -337,7 +408,7 @@ def _check_replace(ckpt: Path, resume: bool, overwrite: bool) -> None:
 
 
 def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every, progress,
-                  config_overrides, should_stop, seed) -> dict:
+                  config_overrides, should_stop, seed, scene_model="auto") -> dict:
     _check_replace(ckpt, resume, overwrite)  # again: another process may have finished here meanwhile
     # A process killed while writing left its temporary files; with the lock held none is in use.
     for name in (ckpt, out / "train.json"):
@@ -347,7 +418,7 @@ def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, che
         state = read_checkpoint(ckpt).get("trainer")
         model = load_nerf(ckpt, device=dev).train()
     else:
-        cfg = NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)])
+        cfg = config_for(ds, scene_model)
         for k, v in (config_overrides or {}).items():
             setattr(cfg, k, v)
         torch.manual_seed(seed)

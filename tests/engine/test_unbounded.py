@@ -1,0 +1,151 @@
+"""Unbounded scenes: the contraction, the background grid, marching in rounds, and training on a room."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from blender_nerf_deform.engine import backend
+from blender_nerf_deform.engine.nerf import renderer
+from blender_nerf_deform.engine.nerf.contraction import FAR_RADIUS, contract, uncontract
+from blender_nerf_deform.engine.nerf.dataset import load_dataset
+from blender_nerf_deform.engine.nerf.evaluate import evaluate
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine.nerf.occupancy import ContractedGrid
+from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for
+
+from fixtures.room_data import write_room_dataset
+from fixtures.sphere_data import look_at
+
+SMALL = dict(n_levels=4, n_features=2, log2_table_size=12, base_resolution=8, finest_resolution=64,
+             density_hidden=16, geo_feat_dim=7, color_hidden=16, occ_resolution=32)
+
+
+def test_contraction_is_continuous_at_the_inner_box_and_maps_infinity_inside_the_grid():
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.randn(2000, 3, generator=g, dtype=torch.float64), dim=1)
+    on_box = dirs / dirs.abs().amax(dim=1, keepdim=True)  # |u|_inf = 1 exactly
+    for eps in (1e-3, 1e-6):
+        inside, outside = contract(on_box * (1 - eps)), contract(on_box * (1 + eps))
+        assert (inside - outside).norm(dim=1).max() < 4 * eps
+    assert torch.equal(contract(on_box * 0.7), on_box * 0.7)  # the inner box is untouched
+    far = contract(on_box * 1e30)
+    assert far.abs().amax(dim=1).max() <= 2.0 and far.abs().amax(dim=1).min() > 2.0 - 1e-6
+    # Monotone along rays from the centre, and undone by uncontract.
+    radii = torch.tensor([1.5, 3.0, 10.0, 100.0], dtype=torch.float64)
+    c = torch.stack([contract(on_box * r).abs().amax(dim=1) for r in radii])
+    assert (c[1:] > c[:-1]).all()
+    u = on_box[:, None, :] * radii[None, :, None]
+    assert torch.allclose(uncontract(contract(u.reshape(-1, 3))), u.reshape(-1, 3), rtol=1e-9)
+    # The model's normalised coordinates stay in [0, 1] for any finite point.
+    m = NerfModel(NerfConfig(contraction="linf", aabb=[-1, -2, -1, 3, 2, 1], **SMALL))
+    x = m.normalize(torch.cat([torch.randn(1000, 3) * 1e6, torch.tensor([[1e38, -1e38, 0.0]])]))
+    assert ((x >= 0) & (x <= 1)).all()
+
+
+def test_background_grid_round_trips_cells_and_never_holds_the_inner_box():
+    grid = ContractedGrid(torch.tensor([[-1.5, -1.0, -2.0], [1.5, 2.0, 2.0]]), 32)
+    idx = torch.arange(32**3)
+    centres = grid.cell_centers(idx, jitter=False)
+    back, inside = grid.cell_index(centres)
+    shell = grid._shell
+    assert inside[shell].all() and torch.equal(back[shell], idx[shell])
+    grid.update(lambda p: torch.full((p.shape[0],), 100.0), 0.01)  # dense everywhere
+    assert grid.mask.sum() == shell.sum() and not grid.occupied(torch.zeros(1, 3)).any()
+    assert grid.occupied(torch.tensor([[0.0, 0.5, 30.0]])).all()
+
+
+def _unbounded_model(seed=0):
+    torch.manual_seed(seed)
+    m = NerfModel(NerfConfig(contraction="linf", **SMALL))
+    with torch.no_grad():
+        m.encoding.table.uniform_(-1, 1)
+    m.occupancy.update(m.density, m.config.render_step, 0.0)
+    m.background.update(m.density, m.config.render_step, 0.0)
+    return m.eval()
+
+
+def test_marching_reaches_the_background_and_the_torch_path_finds_the_same_samples(monkeypatch):
+    m = _unbounded_model()
+    o = torch.tensor([[0.0, -2.5, 0.3]]).repeat(64, 1)
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(1)), dim=1)
+    results = {}
+    for path in (("auto", "torch") if backend.HAVE_NUMBA else ("torch",)):
+        monkeypatch.setattr(backend, "_path", path)
+        results[path] = renderer.march(o, d, m.occupancy, m.config.render_step, model=m)
+    rays, t = results["torch"]
+    p = o[rays] + d[rays] * t[:, None]
+    r = (p.abs() / 1.5).amax(dim=1)
+    assert (r > 20).any() and (r < 1).any()  # samples far out and in the inner box
+    assert r.max() <= FAR_RADIUS * 1.01
+    assert (torch.diff(t)[torch.diff(rays) == 0] > 0).all()  # sorted along each ray
+    if "auto" in results:
+        assert torch.equal(results["auto"][0], rays) and torch.allclose(results["auto"][1], t, rtol=1e-6)
+
+
+def test_rounds_with_early_termination_give_the_full_composite():
+    """Marching in rounds and retiring rays whose transmittance is spent changes the image by less than
+    what the retired rays could still add."""
+    m = _unbounded_model()
+    cam_o = torch.tensor([[0.3, -2.6, 0.4]]).repeat(300, 1)
+    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=torch.Generator().manual_seed(2)) * 0.4
+                                      + torch.tensor([0.0, 1.0, 0.0]), dim=1)
+    with torch.no_grad():
+        fast = renderer.render_rays(m, cam_o, d, background=(0.0, 0.0, 0.0), near=0.0)
+        rays, t = renderer.march(cam_o, d, m.occupancy, m.config.render_step, model=m)
+        # Reference: every sample, its own step length, composited in order.
+        grids = renderer._grids(m, m.occupancy, m.config.render_step, True)
+        state = renderer.march_setup(cam_o, d, m.occupancy, grids)
+        alive = torch.arange(300)
+        parts = []
+        while alive.numel():
+            parts.append(renderer._round_samples(cam_o, d, alive, state, 1 << 14, grids))
+            alive = alive[state.phase[alive] < 3]
+        ray_idx, ts, dts = (torch.cat(x) for x in zip(*parts))
+        order = torch.sort(ray_idx, stable=True).indices
+        ray_idx, ts, dts = ray_idx[order], ts[order], dts[order]
+        assert torch.equal(ray_idx, rays) and torch.equal(ts, t)
+        sigma, rgb = m.query(cam_o[ray_idx] + d[ray_idx] * ts[:, None], d[ray_idx])
+        tau = (sigma * dts).double()
+        trans = renderer._exclusive_transmittance(tau, ray_idx, 300)
+        w = (trans * (1 - torch.exp(-tau))).float()
+        colour = torch.zeros(300, 3).index_add_(0, ray_idx, w[:, None] * rgb)
+    assert fast["alpha"].min() > 0.5  # the random field fills the room: every ray ends somewhere
+    assert fast["n_density_samples"] < 0.8 * len(ray_idx)  # termination skipped samples
+    assert torch.allclose(fast["color"], colour, atol=2e-3)
+
+
+@pytest.mark.slow
+def test_an_unbounded_nerf_learns_a_room_that_a_bounded_one_cannot(tmp_path):
+    train = load_dataset(write_room_dataset(tmp_path / "room", n_views=24, size=32))
+    test = load_dataset(write_room_dataset(tmp_path / "room_test", n_views=4, size=32, seed=7))
+    assert not train.has_alpha
+    scores = {}
+    for scene in ("bounded", "unbounded"):
+        cfg = config_for(train, scene)
+        assert (cfg.contraction == "linf") == (scene == "unbounded")
+        for k, v in dict(log2_table_size=14, occ_resolution=64).items():
+            setattr(cfg, k, v)
+        torch.manual_seed(0)
+        model = NerfModel(cfg)
+        Trainer(model, train, TrainOptions(steps=250, target_samples=1 << 13, occ_warmup_steps=64)).train(progress=False)
+        scores[scene] = float(np.mean(evaluate(model.eval(), test)))
+    # The walls lie outside the bounded box: the bounded NeRF can only paint them on its faces.
+    assert scores["unbounded"] > scores["bounded"] + 2.0 and scores["unbounded"] > 20.0, scores
+    assert config_for(train, "auto").contraction == "linf"
+
+
+def test_auto_scene_model_is_bounded_for_rgba_objects(tmp_path):
+    from fixtures.sphere_data import write_sphere_dataset
+
+    ds = load_dataset(write_sphere_dataset(tmp_path / "s", n_views=2, size=8))
+    assert ds.has_alpha and config_for(ds, "auto").contraction == "none"
+
+
+def test_a_camera_inside_an_unbounded_nerf_sees_everything_around_it():
+    m = _unbounded_model()
+    from blender_nerf_deform.engine.nerf.camera import Camera
+
+    out = renderer.render_image(m, Camera.from_fov(look_at((0.0, -2.0, 0.0)), 8, 8, 1.2))
+    assert out["rgba"][..., 3].min() > 0.5
