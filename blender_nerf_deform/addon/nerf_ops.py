@@ -130,9 +130,12 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
 
     def apply(self, context, result, arrays):
         lo, hi = result["aabb"][:3], result["aabb"][3:]
+        unbounded = result.get("config", {}).get("contraction", "none") != "none"
         name = os.path.splitext(os.path.basename(os.path.dirname(self._path)) or "NeRF")[0] or "NeRF"
         nerf = bpy.data.objects.new(f"NeRF {name}", None)
-        # An Empty's cube is centred on its origin: draw the smallest one that holds the box.
+        # An Empty's cube is centred on its origin: draw the smallest one that holds the box. For an
+        # unbounded NeRF the box is its inner region (what extraction and cages use); the background
+        # beyond it renders but is not drawn.
         nerf.empty_display_type = "CUBE"
         nerf.empty_display_size = max(max(abs(v) for v in lo), max(abs(v) for v in hi))
         s = nerf.nerf_deform
@@ -141,10 +144,28 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         s.aabb = [*lo, *hi]
         context.collection.objects.link(nerf)
         nerf.location = context.scene.cursor.location
+        # The datasets' frames are Z up already (instant-ngp, nerfstudio, and the engine's LLFF, COLMAP
+        # and prepare readers orient them). A capture in arbitrary units (a COLMAP scale of 0.001 or
+        # 1000) is shown at a workable size: its box's largest side becomes SENSIBLE_SIZE.
+        extent = max(b - a for a, b in zip(lo, hi))
+        note = ""
+        if not SIZE_RANGE[0] <= extent <= SIZE_RANGE[1]:
+            factor = SENSIBLE_SIZE / extent
+            nerf.scale = (factor, factor, factor)
+            note = f"; scaled by {factor:.3g} to {SENSIBLE_SIZE:g} units across"
         self._prepare_scene(context.scene)
         select_only(context, nerf)
-        self.report({"INFO"}, f"Loaded {nerf.name} from {self._path} (bounds {lo} .. {hi})")
+        kind = "unbounded: a background surrounds the box" if unbounded else "bounded"
+        self.report({"INFO"}, f"Loaded {nerf.name} from {self._path} (box {_fmt(lo)} .. {_fmt(hi)}, {kind}{note})")
         return {"FINISHED"}
+
+
+SIZE_RANGE = (0.05, 100.0)  # a box side outside this is no size to edit at
+SENSIBLE_SIZE = 3.0
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
 
 
 _classes = (NERFDEFORM_OT_load_nerf,)

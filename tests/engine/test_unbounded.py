@@ -129,10 +129,13 @@ def test_an_unbounded_nerf_learns_a_room_that_a_bounded_one_cannot(tmp_path):
             setattr(cfg, k, v)
         torch.manual_seed(0)
         model = NerfModel(cfg)
-        Trainer(model, train, TrainOptions(steps=250, target_samples=1 << 13, occ_warmup_steps=64)).train(progress=False)
-        scores[scene] = float(np.mean(evaluate(model.eval(), test)))
-    # The walls lie outside the bounded box: the bounded NeRF can only paint them on its faces.
-    assert scores["unbounded"] > scores["bounded"] + 2.0 and scores["unbounded"] > 20.0, scores
+        Trainer(model, train, TrainOptions(steps=400, target_samples=1 << 13, occ_warmup_steps=64)).train(progress=False)
+        model.eval()
+        scores[scene] = (float(np.mean(evaluate(model, train.subset(range(0, 24, 4))))), float(np.mean(evaluate(model, test))))
+    # The walls lie outside the bounded box: the bounded NeRF can only paint them on its faces, which
+    # fits neither its own views nor new ones.
+    (fit_b, new_b), (fit_u, new_u) = scores["bounded"], scores["unbounded"]
+    assert fit_u > fit_b + 3.0 and new_u > new_b + 1.0, scores
     assert config_for(train, "auto").contraction == "linf"
 
 
@@ -149,3 +152,23 @@ def test_a_camera_inside_an_unbounded_nerf_sees_everything_around_it():
 
     out = renderer.render_image(m, Camera.from_fov(look_at((0.0, -2.0, 0.0)), 8, 8, 1.2))
     assert out["rgba"][..., 3].min() > 0.5
+
+
+def test_fused_compositing_kernels_match_their_torch_reference():
+    """SH encoding, contraction and per-ray transmittance: the numba kernels rendering uses give the torch
+    code's values (the torch code is what CUDA and training's gradients run)."""
+    if not backend.HAVE_NUMBA:
+        pytest.skip("numba is not installed: the torch path is the only one")
+    from blender_nerf_deform.engine.nerf.encoding import sh_encode
+
+    g = torch.Generator().manual_seed(3)
+    d = torch.nn.functional.normalize(torch.randn(20000, 3, generator=g), dim=1)
+    m = NerfModel(NerfConfig(contraction="linf", aabb=[-1, -2, -1, 2, 2, 3], **SMALL))
+    p = torch.randn(20000, 3, generator=g) * 5
+    tau = torch.rand(20000, generator=g) * 0.3
+    rays = torch.sort(torch.randint(0, 900, (20000,), generator=g)).values
+    fast = (sh_encode(d), m.normalize(p), renderer._exclusive_transmittance(tau, rays, 900))
+    with backend.forced("torch"):
+        slow = (sh_encode(d), m.normalize(p), renderer._exclusive_transmittance(tau, rays, 900))
+    for a, b in zip(fast, slow):
+        assert a.shape == b.shape and torch.allclose(a, b, atol=1e-6)

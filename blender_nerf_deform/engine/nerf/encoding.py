@@ -21,6 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .. import backend
 from . import encoding_kernels
 
 # instant-ngp's spatial hash primes (the first is 1: coherent along x).
@@ -202,6 +203,9 @@ def sh_encode(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
 
     The basis and constants of instant-ngp / tiny-cuda-nn's SphericalHarmonics encoding.
     """
+    if (d.device.type == "cpu" and d.dtype == torch.float32 and not d.requires_grad and backend.use_kernels(d.device)
+            and 1 <= degree <= 4):
+        return encoding_kernels.sh_forward(d, degree)
     x, y, z = d.unbind(-1)
     out = [torch.full_like(x, 0.28209479177387814)]
     if degree > 1:

@@ -27,7 +27,9 @@ from dataclasses import dataclass, field
 
 import torch
 
+from .. import backend
 from ..errors import EngineError
+from . import composite_kernels
 from .contraction import contract, inner_units
 from .encoding import HashEncoding, sh_encode
 from .occupancy import ContractedGrid, OccupancyGrid
@@ -194,6 +196,9 @@ class NerfModel(torch.nn.Module):
         """World points → the hash grid's [0, 1]^3 (through the contraction for unbounded NeRFs)."""
         if self.unbounded:
             center, half = 0.5 * (self.aabb[0] + self.aabb[1]), 0.5 * (self.aabb[1] - self.aabb[0])
+            if (points.device.type == "cpu" and points.dtype == torch.float32 and not points.requires_grad
+                    and backend.use_kernels(points.device)):
+                return composite_kernels.contract_normalize(points, center, half)
             return (contract(inner_units(points, center, half)) + 2.0) * 0.25
         return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
 
