@@ -69,6 +69,7 @@ def main() -> int:
     ap.add_argument("--scene", default="auto", choices=("auto", "bounded", "unbounded"),
                     help="the trainer's scene model (auto: unbounded for photos without alpha)")
     ap.add_argument("--steps-per-diagonal", type=int, default=None)
+    ap.add_argument("--appearance-dim", type=int, default=0, help="per-image appearance code size (0: none)")
     ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
     args = ap.parse_args()
     if args.threads:
@@ -81,6 +82,8 @@ def main() -> int:
     cfg = config_for(ds, args.scene)
     if args.steps_per_diagonal:
         cfg.steps_per_diagonal = args.steps_per_diagonal
+    if args.appearance_dim:
+        cfg.appearance_dim, cfg.appearance_count = args.appearance_dim, len(train)
     if args.log2_table:
         cfg.log2_table_size = args.log2_table
     if args.finest:

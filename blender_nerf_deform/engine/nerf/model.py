@@ -58,6 +58,8 @@ class NerfConfig:
     background: list = field(default_factory=lambda: [1.0, 1.0, 1.0])  # default background (RGBA data: white)
     contraction: str = "none"  # "linf": aabb is the inner box and the field covers all space (contraction.py)
     near_plane: float = 0.0  # rays start this far from the camera (unbounded scenes: no floaters on the lens)
+    appearance_dim: int = 0  # per-image appearance code fed to the colour MLP (exposure, white balance); 0: none
+    appearance_count: int = 0  # training images with a code; frames render with their mean
 
     @classmethod
     def from_dict(cls, d: dict) -> "NerfConfig":
@@ -108,7 +110,7 @@ _INT_RANGES = {
     "n_levels": (1, 32), "n_features": (1, 64), "log2_table_size": (1, 28), "base_resolution": (1, 1 << 20),
     "finest_resolution": (1, 1 << 20), "density_hidden": (1, 4096), "geo_feat_dim": (0, 4096),
     "color_hidden": (1, 4096), "color_layers": (0, 64), "sh_degree": (1, 4), "occ_resolution": (1, 1024),
-    "steps_per_diagonal": (1, 1 << 20),
+    "steps_per_diagonal": (1, 1 << 20), "appearance_dim": (0, 64), "appearance_count": (0, 1 << 20),
 }
 
 
@@ -171,7 +173,13 @@ class NerfModel(torch.nn.Module):
         self.encoding = HashEncoding(config.n_levels, config.n_features, config.log2_table_size,
                                      config.base_resolution, config.finest_resolution)
         self.density_net = _mlp(self.encoding.out_dim, config.density_hidden, 1, 1 + config.geo_feat_dim)
-        self.color_net = _mlp(1 + config.geo_feat_dim + config.sh_degree**2, config.color_hidden, config.color_layers, 3)
+        self.color_net = _mlp(1 + config.geo_feat_dim + config.sh_degree**2 + config.appearance_dim,
+                              config.color_hidden, config.color_layers, 3)
+        # nerfacto / NeRF-W's appearance embedding: one learnt code per training image, zero to start.
+        self.appearance = None
+        if config.appearance_dim:
+            self.appearance = torch.nn.Embedding(max(1, config.appearance_count), config.appearance_dim)
+            torch.nn.init.zeros_(self.appearance.weight)
         self.occupancy = OccupancyGrid(self.aabb, config.occ_resolution)
         self.background = ContractedGrid(self.aabb, config.occ_resolution) if self.unbounded else None
 
@@ -219,9 +227,16 @@ class NerfModel(torch.nn.Module):
         encoded, inside, _ = self.encode(points)
         return self.features_from_encoding(encoded, inside)
 
-    def color(self, geo: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    def color(self, geo: torch.Tensor, dirs: torch.Tensor, codes: torch.Tensor | None = None) -> torch.Tensor:
+        """RGB of samples; `codes` (N, appearance_dim) are their images' appearance codes (default: the mean
+        code, which is how frames render)."""
         d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        return torch.sigmoid(self.color_net(torch.cat([geo, sh_encode(d, self.config.sh_degree)], dim=-1)))
+        parts = [geo, sh_encode(d, self.config.sh_degree)]
+        if self.appearance is not None:
+            if codes is None:
+                codes = self.appearance.weight.mean(dim=0, keepdim=True).expand(geo.shape[0], -1)
+            parts.append(codes)
+        return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """Volume density (N,) >= 0 at world points (N, 3); 0 outside the aabb."""

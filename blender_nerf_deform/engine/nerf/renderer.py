@@ -208,7 +208,7 @@ def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
 
 
 def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                  samples_out=None):
+                  samples_out=None, appearance=None):
     """Rays in rounds: march a few samples per live ray, evaluate them, retire the rays whose
     transmittance is spent, march on with the others."""
     n, dev = o.shape[0], o.device
@@ -256,7 +256,7 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
                 sel = torch.nonzero(w_all > weight_threshold).flatten()
                 if sel.numel():
                     r_s, w = ray_idx[sel], w_all[sel]
-                    rgb = model.color(geo[sel], sdirs[sel])
+                    rgb = model.color(geo[sel], sdirs[sel], None if appearance is None else appearance[r_s])
                     color.index_add_(0, r_s, w[:, None] * rgb)
                     alpha.index_add_(0, r_s, w)
                     depth.index_add_(0, r_s, w * t[sel])
@@ -276,7 +276,7 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
     sigma, geo = model.features_from_encoding(model.encoding.reuse(enc, xs), inside)
     if keep is not None:
         sigma = sigma * keep[order]
-    rgb = model.color(geo, sdirs)
+    rgb = model.color(geo, sdirs, None if appearance is None else appearance[ray_idx])
     tau = sigma * dt
     trans = _exclusive_transmittance(tau, ray_idx, n)
     w = trans * (1.0 - torch.exp(-tau))
@@ -292,7 +292,7 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
                 occupancy: OccupancyGrid | None = None, sample_transform: SampleTransform | None = None,
                 step: float | None = None, perturb: bool = False, early_stop_eps: float | None = None,
                 weight_threshold: float | None = None, near: float | None = None, return_samples: bool = False,
-                progress: Callable[[int, int], None] | None = None) -> dict:
+                appearance: torch.Tensor | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
     """Render rays (origins (N,3), unit dirs (N,3), world frame) in chunks of `chunk` rays.
 
     Returns a dict: `color` (N,3) premultiplied (composited on black), `alpha` (N,),
@@ -302,6 +302,7 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     called with gradients enabled (training). `progress(done, total)` is called
     after each chunk; raising from it cancels the render. `near` defaults to the
     model's `near_plane`, the thresholds to TRAIN_EARLY_STOP / RENDER_EARLY_STOP.
+    `appearance` (N, appearance_dim): each ray's image code (training; frames use the mean code).
     With `return_samples` (and gradients) also `samples`: (ray index, t, dt, weight)
     of the composited samples, sorted by ray then t (the distortion loss reads them).
     """
@@ -320,7 +321,7 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     for s in range(0, total, chunk):
         c, a, dp, nd, nc = _render_chunk(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
                                          sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                                         samples)
+                                         samples, None if appearance is None else appearance[s: s + chunk])
         if samples is not None and len(samples) > n_chunks_with_samples:
             n_chunks_with_samples = len(samples)
             samples[-1] = (samples[-1][0] + s,) + samples[-1][1:]  # ray indices of the whole batch

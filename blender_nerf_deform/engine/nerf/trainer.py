@@ -120,6 +120,11 @@ class Trainer:
         self.lazy_table = backend.use_kernels(dev)  # the table's lazy Adam needs the fused encoding kernels
         enc.fused_grad = self.lazy_table
         mlp_params = list(model.density_net.parameters()) + list(model.color_net.parameters())
+        if model.appearance is not None:
+            if model.config.appearance_count < n:
+                raise EngineError(f"the NeRF has appearance codes for {model.config.appearance_count} images, the "
+                                  f"dataset has {n}")
+            mlp_params += list(model.appearance.parameters())
         params = mlp_params if self.lazy_table else [enc.table] + mlp_params
         self.optimizer = torch.optim.Adam(params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15)
         if self.lazy_table:
@@ -160,6 +165,7 @@ class Trainer:
         c2w = self.c2w[img]
         d = (c2w[:, :, :3] @ d_cam[:, :, None])[:, :, 0]
         d = d / d.norm(dim=-1, keepdim=True)
+        self.last_images = img
         return c2w[:, :, 3].contiguous(), d.contiguous(), self.pixels[idx]
 
     def progress_fraction(self) -> float:
@@ -215,7 +221,9 @@ class Trainer:
         else:
             bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
-        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0)
+        codes = m.appearance(self.last_images) if m.appearance is not None else None
+        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0,
+                          appearance=codes)
         loss = mse = torch.mean((out["rgb"] - tgt) ** 2)
         if self.distortion > 0 and out.get("samples") is not None:
             r, t, dt, w = out["samples"]
