@@ -178,6 +178,20 @@ def _string_config(p):
     p["config"]["n_levels"] = "eight"
 
 
+def _unbounded_without_background(p):
+    p["config"]["contraction"] = "linf"
+
+
+def _unknown_contraction(p):
+    p["config"]["contraction"] = "spherical"
+
+
+def _background_nan(p):
+    p["config"]["contraction"] = "linf"
+    p["background"] = {"density": p["occupancy"]["density"].clone(), "mask": p["occupancy"]["mask"].clone()}
+    p["background"]["density"][5] = float("nan")
+
+
 def _valid_binary_ply(base) -> bytes:
     return base["mesh"].read_bytes()
 
@@ -250,6 +264,12 @@ CASES = {
     "checkpoint occupancy NaN": lambda b, t: (_render_with(_tampered(b, t, _nan_occupancy), b, t), ("tampered.ckpt", "occupancy"), ["frames"]),
     "checkpoint occupancy too short": lambda b, t: (_render_with(_tampered(b, t, _short_occupancy), b, t), ("tampered.ckpt", "occupancy"), ["frames"]),
     "checkpoint config string": lambda b, t: (_render_with(_tampered(b, t, _string_config), b, t), ("tampered.ckpt", "n_levels"), ["frames"]),
+    "checkpoint unbounded without background": lambda b, t: (_render_with(_tampered(b, t, _unbounded_without_background), b, t),
+                                                             ("tampered.ckpt", "background occupancy"), ["frames"]),
+    "checkpoint unknown contraction": lambda b, t: (_render_with(_tampered(b, t, _unknown_contraction), b, t),
+                                                    ("tampered.ckpt", "contraction", "spherical"), ["frames"]),
+    "checkpoint background NaN": lambda b, t: (_render_with(_tampered(b, t, _background_nan), b, t),
+                                               ("tampered.ckpt", "background.density"), ["frames"]),
     "extract --threshold nan": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "nan"], ("--threshold", "nan"), ["m.ply"]),
     "extract --threshold -1": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "-1"], ("--threshold", "-1"), ["m.ply"]),
     "extract --resolution 2048": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--resolution", "2048"],

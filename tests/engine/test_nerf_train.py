@@ -172,3 +172,20 @@ def test_an_occupancy_update_keeps_the_largest_of_a_cells_repeated_samples():
     for c in range(64):
         expected[c] = max(float(before[c]) * 0.95, float(density(pts[idx == c]).max()))
     assert torch.allclose(grid.density, expected, rtol=0, atol=1e-6)
+
+
+def test_masked_out_pixels_are_never_drawn_for_training(tmp_path):
+    """nerfstudio's mask_path: a pixel whose mask is 0 does not count in the loss, so the trainer never samples it."""
+    folder = write_sphere_dataset(tmp_path / "s", n_views=2, size=8)
+    ds = load_dataset(folder)
+    masks = np.zeros((2, 8, 8), bool)
+    masks[:, 2:5, 3:6] = True
+    ds.images[~masks] = [1.0, 0.0, 0.0, 1.0]  # what must never be seen: pure red
+    ds.images[masks] = [0.0, 1.0, 0.0, 1.0]
+    ds.masks = masks
+    trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(steps=1))
+    _, _, target = trainer.sample_rays(4000)
+    assert torch.equal(target, torch.tensor([0.0, 1.0, 0.0, 1.0]).expand(4000, 4))
+    ds.masks = np.zeros_like(masks)
+    with pytest.raises(Exception, match="masks exclude every pixel"):
+        Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(steps=1))
