@@ -35,9 +35,9 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=10, help="render frames 0, every, 2*every, ...")
     ap.add_argument("--chunk", type=int, default=4096)
     ap.add_argument("--downscale", type=int, default=1)
-    ap.add_argument("--early-stop", type=float, nargs="*", default=[1e-3],
+    ap.add_argument("--early-stop", type=float, nargs="*", default=[1e-4],
                     help="transmittance thresholds to compare (each also the colour weight threshold; "
-                         "default the renderer's, 1e-3)")
+                         "default the renderer's, 1e-4)")
     ap.add_argument("--json")
     args = ap.parse_args()
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

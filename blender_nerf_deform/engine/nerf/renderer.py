@@ -84,9 +84,10 @@ BG_STEP_FACTOR = 2.0  # background step at the inner box: this many inner steps,
 SAMPLES_PER_ROUND = 1 << 16  # samples marched per round of a chunk: k per live ray adapts to this
 K_MIN, K_MAX = 8, 512
 # Rays retire below this transmittance, and (rendering) samples below this weight skip the colour MLP.
-# Training keeps 1e-4 (gradients reach every visible sample); for frames 1e-3 renders a fox frame 14 %
-# faster at the same PSNR (29.60 vs 29.59 dB; 1e-2 loses 1 dB), BENCHMARKS.md issue 13.
-TRAIN_EARLY_STOP, RENDER_EARLY_STOP = 1e-4, 1e-3
+# 1e-3 would render a fox frame 6-14 % faster at the same PSNR, but consecutive frames of a slow twist
+# then change less evenly (largest / smallest frame step 1.64 vs 1.51): frames keep 1e-4, which an
+# animation needs more than the speed (BENCHMARKS.md, issue 13). Callers may pass their own.
+TRAIN_EARLY_STOP = RENDER_EARLY_STOP = 1e-4
 
 
 def _grids(model, occupancy: OccupancyGrid, step: float, background: bool) -> march_kernels.Grids:
@@ -264,7 +265,14 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
             transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
         alive = alive[(state.phase[alive] < march_kernels.PHASE_DONE) & (transmittance[alive] > early_stop_eps)]
     if not grad:
-        return color, alpha, depth, n_density, n_color
+        # The thresholds skip weight: samples below weight_threshold get no colour, and a retired ray
+        # leaves its last transmittance unspent. Alpha is what the ray really absorbed (1 once retired),
+        # and the skipped weight takes the colour and depth of the weight that was kept: without this a
+        # foggy or cut ray would fade towards the background colour.
+        absorbed = (1.0 - transmittance).to(alpha.dtype)
+        absorbed = torch.where(transmittance <= early_stop_eps, torch.ones_like(absorbed), absorbed)
+        scale = torch.where(alpha > 1e-6, absorbed / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+        return color * scale[:, None], alpha * scale, depth * scale, n_density, n_color
     if not kept_parts:
         return color, alpha, depth, n_density, 0
     ray_idx, t, dt, enc, xs, sdirs, keep = (torch.cat(p) if p[0] is not None else None for p in zip(*kept_parts))
