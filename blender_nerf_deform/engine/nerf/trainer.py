@@ -103,10 +103,9 @@ class Trainer:
         self.n_images, self.h, self.w = n, h, w
         self.pixels = torch.from_numpy(dataset.images.reshape(-1, 4)).to(dev)
         # Pixels a mask excludes (nerfstudio's mask_path: 0 = ignore) are never drawn.
-        masks = getattr(dataset, "masks", None)
         self.valid_pixels = None
-        if masks is not None:
-            self.valid_pixels = torch.nonzero(torch.from_numpy(np.asarray(masks).reshape(-1))).flatten().to(dev)
+        if dataset.masks is not None:
+            self.valid_pixels = torch.nonzero(torch.from_numpy(np.asarray(dataset.masks).reshape(-1))).flatten().to(dev)
             if self.valid_pixels.numel() == 0:
                 raise EngineError("the dataset's masks exclude every pixel: nothing to train on")
         self.c2w = torch.tensor(np.stack([c.c2w[:3, :4] for c in dataset.cameras]), dtype=torch.float32, device=dev)
@@ -346,8 +345,7 @@ def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     unbounded = scene_model == "unbounded" or (scene_model == "auto" and not ds.has_alpha)
     if not unbounded:
         return NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)])
-    inner = np.asarray(getattr(ds, "inner_aabb", None) if getattr(ds, "inner_aabb", None) is not None else ds.aabb,
-                       dtype=np.float64).reshape(2, 3)
+    inner = np.asarray(ds.inner_aabb if ds.inner_aabb is not None else ds.aabb, dtype=np.float64).reshape(2, 3)
     base = NerfConfig()
     half = float((inner[1] - inner[0]).max() / 2)
     # Half the bounded model's samples per diagonal: on fox (2 min) the same PSNR as 512 (25.3 dB) with
