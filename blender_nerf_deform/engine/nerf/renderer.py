@@ -27,7 +27,7 @@ carries its own step length. Hooks for ray bending:
   between sampling and the field query; samples with keep False get density 0.
 
 Early ray termination, in rounds: a chunk's live rays are marched a few occupied
-samples at a time (k per ray, growing as rays retire, ~SAMPLES_PER_ROUND per round),
+samples at a time (k per ray, growing as rays retire, ~*_SAMPLES_PER_ROUND per round),
 those samples' density is evaluated, and rays whose transmittance fell below
 `early_stop_eps` retire before the next round. So a ray stops marching at the first
 opaque surface, also in real captures where every cell is occupied. Without gradients
@@ -81,7 +81,10 @@ def ray_box(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor) -> tup
 
 
 BG_STEP_FACTOR = 2.0  # background step at the inner box: this many inner steps, growing with distance
-SAMPLES_PER_ROUND = 1 << 16  # samples marched per round of a chunk: k per live ray adapts to this
+# Samples marched per round of a chunk (k per live ray adapts to it). A ray ends inside its last round,
+# so smaller rounds evaluate fewer samples past the surface but pay more rounds; frames and training
+# weigh that differently (BENCHMARKS.md, issue 13).
+TRAIN_SAMPLES_PER_ROUND, RENDER_SAMPLES_PER_ROUND = 1 << 16, 1 << 13
 K_MIN, K_MAX = 8, 512
 # Rays retire below this transmittance, and (rendering) samples below this weight skip the colour MLP.
 # 1e-3 would render a fox frame 6-14 % faster at the same PSNR, but consecutive frames of a slow twist
@@ -209,7 +212,7 @@ def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
 
 
 def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                  samples_out=None, appearance=None):
+                  samples_out=None, appearance=None, samples_per_round=TRAIN_SAMPLES_PER_ROUND):
     """Rays in rounds: march a few samples per live ray, evaluate them, retire the rays whose
     transmittance is spent, march on with the others."""
     n, dev = o.shape[0], o.device
@@ -223,7 +226,7 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
     n_density = n_color = 0
     kept_parts = []  # with gradients: the samples to re-evaluate, per round
     while alive.numel():
-        k = int(min(K_MAX, max(K_MIN, SAMPLES_PER_ROUND // alive.numel())))
+        k = int(min(K_MAX, max(K_MIN, samples_per_round // alive.numel())))
         ray_idx, t, dt = _round_samples(o, d, alive, state, k, grids)
         if ray_idx.numel():
             pts = o[ray_idx] + d[ray_idx] * t[:, None]
@@ -329,7 +332,8 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     for s in range(0, total, chunk):
         c, a, dp, nd, nc = _render_chunk(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
                                          sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                                         samples, None if appearance is None else appearance[s: s + chunk])
+                                         samples, None if appearance is None else appearance[s: s + chunk],
+                                         TRAIN_SAMPLES_PER_ROUND if grad else RENDER_SAMPLES_PER_ROUND)
         if samples is not None and len(samples) > n_chunks_with_samples:
             n_chunks_with_samples = len(samples)
             samples[-1] = (samples[-1][0] + s,) + samples[-1][1:]  # ray indices of the whole batch
