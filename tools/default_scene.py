@@ -151,6 +151,30 @@ def _emission_material(bpy):
     return mat
 
 
+def black_world(bpy, scene, name: str) -> None:
+    """A black, zero-strength world for the scene (it lights nothing)."""
+    world = bpy.data.worlds.new(name)
+    if world.node_tree is None:
+        world.use_nodes = True
+    background = world.node_tree.nodes.get("Background")
+    if background is not None:
+        background.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+        background.inputs["Strength"].default_value = 0.0
+    scene.world = world
+
+
+def camera_at(bpy, scene, position, lens: float) -> None:
+    """The scene's camera: at `position`, looking at the origin (+Z up), a 36 mm sensor."""
+    from mathutils import Matrix, Vector  # noqa: PLC0415
+
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam)
+    position = Vector(position)
+    cam.matrix_world = Matrix.Translation(position) @ (-position).to_track_quat("-Z", "Y").to_matrix().to_4x4()
+    cam.data.lens, cam.data.sensor_width = lens, 36.0
+    scene.camera = cam
+
+
 def _add_vertex_group(obj, name, zmin, zmax):
     group = obj.vertex_groups.new(name=name)
     indices = [v.index for v in obj.data.vertices if zmin - 1e-6 <= v.co.z <= zmax + 1e-6]
@@ -190,24 +214,9 @@ def build(bpy) -> dict:
     _add_vertex_group(arm, "tip", REGIONS["arm_tip"]["bounds"][0][2], az1)
 
     # A black, zero-strength world: nothing lights the scene, the emission is the look.
-    world = bpy.data.worlds.new("DefaultSceneWorld")
-    if world.node_tree is None:
-        world.use_nodes = True
-    background = world.node_tree.nodes.get("Background")
-    if background is not None:
-        background.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
-        background.inputs["Strength"].default_value = 0.0
-    scene.world = world
-
+    black_world(bpy, scene, "DefaultSceneWorld")
     # A camera so that opening the file (or `blender -b file -f 1`) shows the toy.
-    from mathutils import Matrix, Vector  # noqa: PLC0415
-
-    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam)
-    position = Vector((2.6, -2.9, 1.3))
-    cam.matrix_world = Matrix.Translation(position) @ (-position).to_track_quat("-Z", "Y").to_matrix().to_4x4()
-    cam.data.lens, cam.data.sensor_width = 50.0, 36.0
-    scene.camera = cam
+    camera_at(bpy, scene, (2.6, -2.9, 1.3), lens=50.0)
 
     render = scene.render
     render.engine = "CYCLES"

@@ -50,6 +50,10 @@ import math
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from tools.default_scene import black_world, camera_at  # noqa: E402  (bpy is passed in, not imported)
+
 OBJECT_BOUNDS = ((-0.7, -0.7, -0.55), (0.7, 0.7, 0.55))  # everything above the pedestal column
 ROOM_BOUNDS = ((-4.5, -4.5, -2.0), (4.5, 4.5, 4.0))  # inner faces of walls, floor, ceiling
 WORLD_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))  # the NeRF-synthetic box the object lies in
@@ -377,23 +381,8 @@ def build(bpy) -> dict:
     build_room(bpy)
     build_lights(bpy)
 
-    world = bpy.data.worlds.new("RoomWorld")  # never seen: the room is closed
-    if world.node_tree is None:
-        world.use_nodes = True
-    background = world.node_tree.nodes.get("Background")
-    if background is not None:
-        background.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
-        background.inputs["Strength"].default_value = 0.0
-    scene.world = world
-
-    from mathutils import Matrix, Vector  # noqa: PLC0415
-
-    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam)
-    position = Vector((1.6, -2.1, 0.6))
-    cam.matrix_world = Matrix.Translation(position) @ (-position).to_track_quat("-Z", "Y").to_matrix().to_4x4()
-    cam.data.lens, cam.data.sensor_width = 35.0, 36.0
-    scene.camera = cam
+    black_world(bpy, scene, "RoomWorld")  # never seen: the room is closed
+    camera_at(bpy, scene, (1.6, -2.1, 0.6), lens=35.0)
 
     render = scene.render
     render.engine = "CYCLES"

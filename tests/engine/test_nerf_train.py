@@ -184,7 +184,7 @@ def test_masked_out_pixels_are_never_drawn_for_training(tmp_path):
     ds.images[masks] = [0.0, 1.0, 0.0, 1.0]
     ds.masks = masks
     trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(steps=1))
-    _, _, target = trainer.sample_rays(4000)
+    _, _, target, _ = trainer.sample_rays(4000)
     assert torch.equal(target, torch.tensor([0.0, 1.0, 0.0, 1.0]).expand(4000, 4))
     ds.masks = np.zeros_like(masks)
     with pytest.raises(Exception, match="masks exclude every pixel"):

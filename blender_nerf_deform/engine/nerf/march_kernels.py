@@ -207,7 +207,6 @@ def _march_round_torch(o, d, alive, s: MarchState, k: int, g: Grids, block: int 
     ts = torch.zeros((n, k), dtype=torch.float32, device=dev)
     dts = torch.zeros((n, k), dtype=torch.float32, device=dev)
     counts = torch.zeros(n, dtype=torch.int64, device=dev)
-    rows = torch.arange(n, device=dev)
     offsets = torch.arange(block, device=dev)
     while True:
         ph = s.phase[alive]
@@ -269,7 +268,6 @@ def _march_round_torch(o, d, alive, s: MarchState, k: int, g: Grids, block: int 
                 dts[b[hit], counts[b[hit]]] = (t_next - t)[hit]
                 counts[b[hit]] += 1
                 s.t[ray] = t_next
-    del rows
     return ts, dts, counts
 
 

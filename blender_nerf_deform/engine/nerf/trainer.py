@@ -164,8 +164,7 @@ class Trainer:
         c2w = self.c2w[img]
         d = (c2w[:, :, :3] @ d_cam[:, :, None])[:, :, 0]
         d = d / d.norm(dim=-1, keepdim=True)
-        self.last_images = img
-        return c2w[:, :, 3].contiguous(), d.contiguous(), self.pixels[idx]
+        return c2w[:, :, 3].contiguous(), d.contiguous(), self.pixels[idx], img
 
     def progress_fraction(self) -> float:
         p = 0.0
@@ -214,13 +213,13 @@ class Trainer:
         self.update_occupancy()
         m = self.model
         m.train()
-        o, d, target = self.sample_rays(self.n_rays)
+        o, d, target, images = self.sample_rays(self.n_rays)
         if self.opt.random_background:
             bg = torch.rand(self.n_rays, 3, device=self.device)
         else:
             bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
-        codes = m.appearance(self.last_images) if m.appearance is not None else None
+        codes = m.appearance(images) if m.appearance is not None else None
         out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0,
                           appearance=codes)
         loss = mse = torch.mean((out["rgb"] - tgt) ** 2)
