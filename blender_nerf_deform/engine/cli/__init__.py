@@ -86,6 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V "
                    "(world units cubed; default: 1%% of the largest component's volume)")
     p.add_argument("--decimate", type=int, metavar="FACES", help="decimate the filtered mesh to about FACES faces")
+    p.add_argument("--region", metavar="REGION.json", help="extract only inside this oriented box "
+                   '({"center": [x,y,z], "size": [sx,sy,sz], "rotation_euler": [rx,ry,rz]}, radians, XYZ, the NeRF\'s '
+                   "frame): the resolution is spent there and the surface is closed where the box cuts the scene")
+    p.add_argument("--pick", type=float, nargs=3, metavar=("X", "Y", "Z"), help="keep only the part of the surface "
+                   "connected to this point on the object (grown over the density grid, within the region)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_command("extract"))
 
@@ -98,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--edge-length", type=float, metavar="L", help="target tet edge length, world units")
     p.add_argument("--target-tets", type=int, metavar="N", help="approximate number of tets (ignored with --edge-length)")
     p.add_argument("--threshold", type=float, metavar="T", help="surface density threshold used for extraction (default 10)")
+    p.add_argument("--region", metavar="REGION.json", help="the edit region the mesh was extracted in: recorded in the "
+                   "cage, and where the mesh has no cut flags its vertices on the region's boundary are the cut")
+    p.add_argument("--no-pin-cut", action="store_true", help="do not pin the cage where the region cut the scene "
+                   "(by default the deformation fades to nothing there, so the object stays attached)")
     p.set_defaults(handler=_command("cage"))
 
     p = sub.add_parser("prepare", help="photos with no poses -> a transforms.json dataset, by structure from motion")

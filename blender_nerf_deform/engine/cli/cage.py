@@ -2,28 +2,46 @@
 
     python -m blender_nerf_deform.engine cage --nerf CKPT --mesh MESH.ply --out CAGE.npz
         [--margin M] [--edge-length L] [--target-tets N] [--threshold T]
+        [--region REGION.json] [--no-pin-cut]
+
+Where the mesh was closed along an edit region's cut (its `nerf_cut` vertices, or with
+--region its vertices on the region's boundary), the cage vertices there are pinned
+(`pinned_vertices` in CAGE.npz), unless --no-pin-cut.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..files import check_writable
-from ..geometry.cage import build_nerf_cage, check_cage_options, vertices_outside
+from ..geometry.cage import build_nerf_cage, check_cage_options, cut_from_region, cut_pins, vertices_outside
 from ..geometry.mesh_io import read_ply, save_cage
+from ..geometry.region import load_region
 from ..nerf.checkpoint import load_nerf
 
 
 def main(args) -> int:
     check_cage_options(args.margin, args.edge_length, args.target_tets, args.threshold)
+    region = load_region(args.region) if args.region else None
     check_writable(args.out)
-    verts, faces, _ = read_ply(args.mesh)
+    verts, faces, _, cut = read_ply(args.mesh, with_cut=True)
+    if cut is None and region is not None:
+        cut = cut_from_region(verts, region)
     nerf = load_nerf(args.nerf)
     cage = build_nerf_cage(verts, faces, nerf, args.margin, args.threshold,
                            edge_length=args.edge_length, target_tets=args.target_tets, name=f"mesh {args.mesh}")
     aabb = nerf.aabb.detach().cpu().double().numpy().reshape(2, 3)
-    save_cage(args.out, cage.vertices, cage.tets, margin=cage.margin, clearance=cage.clearance, bounds=aabb)
+    pinned = np.zeros(0, dtype=np.int64) if args.no_pin_cut else cut_pins(cage.vertices, verts, cut, cage.margin)
+    extra = {"margin": cage.margin, "clearance": cage.clearance, "bounds": aabb, "pinned_vertices": pinned}
+    if region is not None:
+        extra.update({f"region_{k}": np.asarray(v) for k, v in region.to_dict().items()})
+    save_cage(args.out, cage.vertices, cage.tets, **extra)
     print(
         f"cage: {len(cage.tets)} tets, {len(cage.vertices)} vertices, margin {cage.margin:.4g}, clearance {cage.clearance:.4g}, "
         f"{vertices_outside(cage.vertices, aabb)} vertices outside the NeRF's bounds; envelope {cage.timings['envelope_s']:.1f}s, "
         f"tetrahedralize {cage.timings['tetrahedralize_s']:.1f}s -> {args.out}"
     )
+    if cut is not None and cut.any():
+        print(f"cut: {int(cut.sum())} mesh vertices close the region's cut; "
+              + ("not pinned (--no-pin-cut)" if args.no_pin_cut else f"{len(pinned)} cage vertices pinned there"))
     return 0

@@ -323,3 +323,27 @@ def build_nerf_cage(vertices: np.ndarray, faces: np.ndarray, nerf, margin: float
 def vertices_outside(vertices: np.ndarray, bounds: np.ndarray) -> int:
     """How many cage vertices lie outside a NeRF's (2,3) bounds (reported: the NeRF is empty there)."""
     return int(np.any((vertices < bounds[0]) | (vertices > bounds[1]), axis=1).sum())
+
+
+def cut_pins(cage_vertices: np.ndarray, mesh_vertices: np.ndarray, cut: np.ndarray | None, margin: float) -> np.ndarray:
+    """Cage vertices to pin where an edit region cut the scene (sorted indices; empty without a cut).
+
+    A cage vertex is pinned when the cut is about as near to it as the object is (within half
+    the margin): the cage's side beyond the cut and the rim around it, so the deformation fades
+    to nothing where the object meets the rest of the scene, and no seam opens there."""
+    from scipy.spatial import cKDTree
+
+    if cut is None or not np.any(cut):
+        return np.zeros(0, dtype=np.int64)
+    M = np.asarray(mesh_vertices, dtype=np.float64)
+    C = np.asarray(cage_vertices, dtype=np.float64)
+    d_any = cKDTree(M).query(C)[0]
+    d_cut = cKDTree(M[np.asarray(cut, dtype=bool)]).query(C)[0]
+    return np.flatnonzero(d_cut <= d_any + 0.5 * float(margin)).astype(np.int64)
+
+
+def cut_from_region(mesh_vertices: np.ndarray, region) -> np.ndarray:
+    """The cut of a mesh that carries no cut flags (made elsewhere): its vertices on or outside
+    the region's boundary (extraction closes a cut just outside it)."""
+    local = np.abs(region.to_local(mesh_vertices))
+    return np.any(local >= region.half * (1 - 1e-6), axis=1)

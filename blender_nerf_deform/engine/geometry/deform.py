@@ -346,7 +346,10 @@ class RegionDeformer:
     """
 
     def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_regions: list,
-                 pin_region: np.ndarray | None = None, names: list[str] | None = None, mode: str = "ARAP"):
+                 pin_region: np.ndarray | None = None, names: list[str] | None = None, mode: str = "ARAP",
+                 cage_pins: np.ndarray | None = None):
+        """`pin_region`: surface vertices the artist pinned; `cage_pins`: cage vertices pinned where
+        an edit region cut the scene (cage.cut_pins). A handle's region wins over the cut's pins."""
         if mode not in ("ARAP", "AFFINE"):
             raise EngineError(f"unknown deformation mode {mode!r}: ARAP or AFFINE")
         self.mode = mode
@@ -357,7 +360,16 @@ class RegionDeformer:
                                   names + ["the pinned region"] * len(pins))
         self.n_handles = len(handle_regions)
         self.cage_regions = regions[: self.n_handles]
-        self.arap = ArapDeformer(self.rest, tets, self.cage_regions, regions[self.n_handles:]) if mode == "ARAP" else None
+        fixed = regions[self.n_handles:]
+        if cage_pins is not None and len(cage_pins):
+            cut = np.asarray(cage_pins, dtype=np.int64)
+            if cut.min() < 0 or cut.max() >= len(self.rest):
+                raise EngineError(f"the cut's pinned cage vertices must index 0..{len(self.rest) - 1}")
+            moved = np.concatenate(self.cage_regions) if self.cage_regions else np.zeros(0, np.int64)
+            cut = np.setdiff1d(cut, moved)
+            if len(cut):
+                fixed = [np.union1d(fixed[0], cut)] if fixed else [cut]
+        self.arap = ArapDeformer(self.rest, tets, self.cage_regions, fixed) if mode == "ARAP" else None
         self.precompute_s = self.arap.precompute_s if self.arap is not None else 0.0
 
     def solve(self, transforms: list) -> tuple[np.ndarray, dict]:

@@ -1,9 +1,16 @@
 """Mesh extraction from a NeRF's density, with automatic filtering of floaters.
 
 1. Sample the density on a grid over the NeRF's bounds (`resolution` points
-   per axis, chunked by z-slabs, with progress).
+   per axis, chunked by z-slabs, with progress), or over an edit region (an
+   oriented box, region.py: `resolution` points along its longest side, its
+   other sides at the same spacing, samples outside the NeRF's bounds empty).
+   With a pick point, keep only the part of {density > threshold} connected to
+   it (NeRFshop's region growing over the density grid, scipy's labelling,
+   6-connected), limited by the region.
 2. Pad the grid with one layer of empty samples, so every surface closes even
-   where the object touches the bounds, and run marching cubes
+   where the object touches the bounds or the region cuts it (the cut), and
+   flag the vertices that close a cut (those on a grid edge to a padding or
+   outside-the-bounds sample): the cage pins them. Run marching cubes
    (scikit-image) at the density threshold, in world coordinates. Samples
    within a hair of the threshold are first moved off it, and coincident
    triangles are dropped afterwards: scikit-image's Lewiner tables leave holes
@@ -60,12 +67,17 @@ class ExtractResult:
     threshold: float
     min_volume: float
     timings: dict = field(default_factory=dict)
+    cut: np.ndarray | None = None  # (N,) bool: vertices that close a cut by the region or the bounds
+    notes: list = field(default_factory=list)  # what the region and the pick did, for the report
 
     def report(self) -> str:
-        lines = [
+        lines = list(self.notes) + [
             f"kept {len(self.kept)} component(s): {len(self.vertices)} vertices, {len(self.faces)} faces, "
             f"volume {sum(c.volume for c in self.kept):.4g}",
         ]
+        if self.cut is not None and self.cut.any():
+            lines.append(f"closed along the cut: {int(self.cut.sum())} vertices where the region or the box cuts "
+                         "the scene (the cage pins them)")
         if self.dropped:
             big = max(self.dropped, key=lambda c: c.volume)
             lines.append(
@@ -122,13 +134,14 @@ def _gib(n: float) -> str:
     return f"{n / 2**30:.1f} GiB"
 
 
-def check_grid_memory(resolution: int) -> None:
-    """EngineError, before sampling, when the grid of `resolution`^3 samples cannot fit in memory."""
-    need = BYTES_PER_SAMPLE * float(resolution) ** 3
+def check_grid_memory(resolution: int, shape=None) -> None:
+    """EngineError, before sampling, when the grid (`resolution`^3 samples, or `shape`) cannot fit in memory."""
+    count = float(np.prod(shape)) if shape is not None else float(resolution) ** 3
+    need = BYTES_PER_SAMPLE * count
     free = available_memory()
     if free is not None and need > free:
         raise EngineError(f"extraction at resolution {resolution} needs about {_gib(need)} of memory "
-                          f"({resolution}^3 density samples), but only {_gib(free)} is available: lower the resolution")
+                          f"({int(count)} density samples), but only {_gib(free)} is available: lower the resolution")
 
 
 def _bounds(bounds) -> np.ndarray:
@@ -138,32 +151,124 @@ def _bounds(bounds) -> np.ndarray:
     return b
 
 
-def sample_grid(density_fn: DensityFn, bounds, resolution: int = DEFAULT_RESOLUTION, chunk: int = 1 << 18, progress: bool = False) -> np.ndarray:
-    """(R, R, R) float32 densities at the grid's corner points, x fastest-varying last (index [i, j, k] = x_i, y_j, z_k)."""
-    if resolution < 2 or resolution > MAX_RESOLUTION:
-        raise EngineError(f"grid resolution must be between 2 and {MAX_RESOLUTION}, got {resolution}")
-    check_grid_memory(resolution)
+@dataclass(frozen=True)
+class Lattice:
+    """The sample points of an extraction: world = origin + steps @ (i, j, k)."""
+
+    origin: np.ndarray  # (3,) world position of sample (0, 0, 0)
+    steps: np.ndarray  # (3, 3): column a is the world step along index axis a
+    shape: tuple  # samples per axis
+
+    def to_world(self, index: np.ndarray) -> np.ndarray:
+        return self.origin + np.asarray(index, dtype=np.float64) @ self.steps.T
+
+    def to_index(self, points: np.ndarray) -> np.ndarray:
+        return np.linalg.solve(self.steps, (np.asarray(points, dtype=np.float64) - self.origin).T).T
+
+    @property
+    def spacing(self) -> np.ndarray:
+        return np.linalg.norm(self.steps, axis=0)
+
+
+def box_lattice(bounds, resolution: int) -> Lattice:
+    """`resolution` samples per axis from the box's min corner to its max corner."""
     b = _bounds(bounds)
-    axes = [np.linspace(b[0, i], b[1, i], resolution) for i in range(3)]
-    grid = np.empty((resolution,) * 3, dtype=np.float32)
-    X, Y = np.meshgrid(axes[0], axes[1], indexing="ij")
-    slab = max(1, chunk // (resolution * resolution))
-    starts = range(0, resolution, slab)
+    return Lattice(b[0], np.diag((b[1] - b[0]) / (resolution - 1)), (resolution,) * 3)
+
+
+def region_lattice(region, resolution: int) -> Lattice:
+    """Samples spanning an edit region exactly, `resolution` along its longest side and the same
+    spacing (to within rounding) along the others, so a small object gets the whole resolution."""
+    pitch = float(region.size.max()) / (resolution - 1)
+    shape = tuple(int(max(2, round(float(s) / pitch) + 1)) for s in region.size)
+    h = region.size / (np.array(shape) - 1)
+    return Lattice(region.to_world(-region.half), region.rotation * h, shape)
+
+
+def sample_lattice(density_fn: DensityFn, lattice: Lattice, chunk: int = 1 << 18, progress: bool = False,
+                   clip_bounds=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(grid (n0, n1, n2) float32 densities at the lattice's points, mask of the samples outside
+    `clip_bounds` (their density is not asked: they count as empty), or None without clipping)."""
+    nx, ny, nz = lattice.shape
+    check_grid_memory(max(lattice.shape), lattice.shape)
+    grid = np.zeros(lattice.shape, dtype=np.float32)
+    outside = np.zeros(lattice.shape, dtype=bool) if clip_bounds is not None else None
+    I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    slab = max(1, chunk // (nx * ny))
+    starts = range(0, nz, slab)
     if progress:
         from tqdm import tqdm
 
         starts = tqdm(starts, desc="density grid", unit="slab", file=sys.stderr)
     for k0 in starts:
-        zs = axes[2][k0 : k0 + slab]
-        P = np.empty((resolution, resolution, len(zs), 3))
-        P[..., 0] = X[..., None]
-        P[..., 1] = Y[..., None]
-        P[..., 2] = zs
-        d = np.asarray(density_fn(P.reshape(-1, 3)), dtype=np.float32).reshape(resolution, resolution, len(zs))
-        grid[:, :, k0 : k0 + len(zs)] = d
+        ks = np.arange(k0, min(nz, k0 + slab))
+        idx = np.empty((nx, ny, len(ks), 3))
+        idx[..., 0], idx[..., 1], idx[..., 2] = I[..., None], J[..., None], ks
+        P = lattice.to_world(idx.reshape(-1, 3))
+        if clip_bounds is None:
+            d = np.asarray(density_fn(P), dtype=np.float32)
+        else:
+            lo, hi = clip_bounds
+            out = np.any((P < lo) | (P > hi), axis=1)
+            d = np.zeros(len(P), dtype=np.float32)
+            if not out.all():
+                d[~out] = np.asarray(density_fn(P[~out]), dtype=np.float32)
+            outside[:, :, ks] = out.reshape(nx, ny, len(ks))
+        grid[:, :, ks] = d.reshape(nx, ny, len(ks))
     if not np.isfinite(grid).all():
         raise EngineError("the density field returned non-finite values")
-    return grid
+    return grid, outside
+
+
+def sample_grid(density_fn: DensityFn, bounds, resolution: int = DEFAULT_RESOLUTION, chunk: int = 1 << 18, progress: bool = False) -> np.ndarray:
+    """(R, R, R) float32 densities at the grid's corner points, x fastest-varying last (index [i, j, k] = x_i, y_j, z_k)."""
+    if resolution < 2 or resolution > MAX_RESOLUTION:
+        raise EngineError(f"grid resolution must be between 2 and {MAX_RESOLUTION}, got {resolution}")
+    return sample_lattice(density_fn, box_lattice(bounds, resolution), chunk, progress)[0]
+
+
+PICK_SEARCH_FRACTION = 0.03  # of the lattice's longest side: how far from the pick point a dense sample is looked for
+
+
+def pick_component(grid: np.ndarray, threshold: float, lattice: Lattice, point) -> tuple[np.ndarray, str]:
+    """(mask of the samples above `threshold` 6-connected to the one nearest `point`, report line).
+
+    The pick point is where the artist clicked (or the 3D cursor): on the surface rather than
+    inside it, so the nearest dense sample within a few percent of the grid counts."""
+    from scipy import ndimage
+
+    q = lattice.to_index(np.asarray(point, dtype=np.float64).reshape(1, 3))[0]
+    shape = np.array(grid.shape)
+    r = max(2, int(np.ceil(PICK_SEARCH_FRACTION * shape.max())))
+    p = np.asarray(point, dtype=np.float64).ravel()
+    where = f"({p[0]:.3g}, {p[1]:.3g}, {p[2]:.3g})"
+    if np.any(q < -r) or np.any(q > shape - 1 + r):
+        raise EngineError(f"the pick point {where} lies outside the sampled region: put it on the object, inside "
+                          "the edit region and the NeRF's box")
+    lo = np.clip(np.floor(q).astype(int) - r, 0, shape - 1)
+    hi = np.clip(np.ceil(q).astype(int) + r, 0, shape - 1) + 1
+    window = grid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    dense = np.argwhere(window > threshold)
+    if len(dense) == 0:
+        radius = float(r * lattice.spacing.max())
+        raise EngineError(f"the pick point {where} is in empty space: the largest density within {radius:.3g} of it "
+                          f"is {float(window.max()):.4g}, not above the threshold {threshold:g}; put it on the object")
+    seed = lo + dense[np.argmin(np.linalg.norm((dense + lo) - q, axis=1))]
+    labels, count = ndimage.label(grid > threshold)
+    mask = labels == labels[tuple(seed)]
+    line = (f"picked the part connected to {where}: {int(mask.sum())} of {int((labels > 0).sum())} dense samples "
+            f"({count - 1} other part(s) left out)")
+    return mask, line
+
+
+def _cut_vertices(verts_index: np.ndarray, forced_empty: np.ndarray) -> np.ndarray:
+    """Marching cubes vertices lying on a grid edge to a forced-empty sample (padding, outside the
+    bounds): where the region or the box cut the scene and the surface was closed."""
+    lo = np.floor(verts_index + 1e-6).astype(np.int64)
+    hi = np.ceil(verts_index - 1e-6).astype(np.int64)
+    upper = np.array(forced_empty.shape) - 1
+    lo, hi = np.clip(lo, 0, upper), np.clip(hi, 0, upper)
+    return forced_empty[lo[:, 0], lo[:, 1], lo[:, 2]] | forced_empty[hi[:, 0], hi[:, 1], hi[:, 2]]
 
 
 def component_volumes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -237,33 +342,60 @@ def extract_mesh(
     decimate: int | None = None,
     progress: bool = False,
     grid: np.ndarray | None = None,
+    region=None,
+    pick=None,
 ) -> ExtractResult:
-    """Surface of {density > threshold} over `bounds`, floaters removed. See the module docstring."""
+    """Surface of {density > threshold} over `bounds` (or over the edit `region` within them),
+    floaters removed; with `pick` (a world point) only the part connected to it. See the module
+    docstring. `grid` is a density grid sampled over `bounds` already (tests)."""
     from skimage.measure import marching_cubes
 
     check_extract_options(resolution if grid is None else None, threshold, min_volume, decimate)
     b = _bounds(bounds)
-    timings = {}
+    timings, notes = {}, []
     t0 = time.perf_counter()
-    if grid is None:
-        grid = sample_grid(density_fn, b, resolution, progress=progress)
-    resolution = grid.shape[0]
+    outside = None
+    if region is not None:
+        from .region import check_region_in_box
+
+        check_region_in_box(region, b)
+        lattice = region_lattice(region, resolution)
+        grid, outside = sample_lattice(density_fn, lattice, progress=progress, clip_bounds=b)
+        where = f"the {region.describe()}"
+        notes.append(f"{region.describe()}: {'x'.join(str(n) for n in lattice.shape)} samples, spacing "
+                     f"{float(lattice.spacing.max()):.3g}" + (f"; {outside.mean():.0%} of it outside the NeRF's box"
+                                                            if outside.any() else ""))
+    else:
+        if grid is None:
+            grid = sample_grid(density_fn, b, resolution, progress=progress)
+        lattice = box_lattice(b, grid.shape[0])
+        where = f"bounds {b.tolist()}"
     timings["grid_s"] = time.perf_counter() - t0
     dmax = float(grid.max())
     if dmax <= threshold:
         raise EngineError(
-            f"the density grid is empty: the largest density over the {resolution}^3 samples in bounds "
-            f"{b.tolist()} is {dmax:.4g}, not above the threshold {threshold:g}"
+            f"the density grid is empty: the largest density over the {grid.size} samples in {where} "
+            f"is {dmax:.4g}, not above the threshold {threshold:g}"
         )
-    t0 = time.perf_counter()
-    spacing = (b[1] - b[0]) / (resolution - 1)
     empty = min(float(grid.min()), threshold) - 1.0
+    if pick is not None:
+        t0 = time.perf_counter()
+        mask, line = pick_component(grid, threshold, lattice, pick)
+        grid = np.where((grid > threshold) & ~mask, np.float32(empty), grid)
+        notes.append(line)
+        timings["pick_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if outside is not None and outside.any():
+        grid = np.where(outside, np.float32(empty), grid)
     padded = _off_the_level(np.pad(grid, 1, mode="constant", constant_values=empty), threshold)
-    verts, faces, _, _ = marching_cubes(padded, level=threshold, spacing=tuple(spacing))
+    verts_index, faces, _, _ = marching_cubes(padded, level=threshold)
+    forced_empty = np.pad(outside if outside is not None else np.zeros(grid.shape, dtype=bool), 1,
+                          mode="constant", constant_values=True)
+    cut = _cut_vertices(verts_index, forced_empty)
     # Vertices stay as marching cubes shares them (one per grid edge), none merged by position:
     # near a sample at the level several lie within float precision of each other, and merging
     # some of them but not others is what pinches the surface into non-manifold edges.
-    verts = verts.astype(np.float64) + (b[0] - spacing)
+    verts = lattice.to_world(verts_index.astype(np.float64) - 1.0)
     faces = _drop_coincident_faces(faces.astype(np.int64))
     timings["marching_cubes_s"] = time.perf_counter() - t0
 
@@ -293,15 +425,21 @@ def extract_mesh(
     used = np.unique(faces)
     remap = np.full(len(verts), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    verts, faces = verts[used], remap[faces]
+    verts, faces, cut = verts[used], remap[faces], cut[used]
     timings["filter_s"] = time.perf_counter() - t0
 
     if decimate is not None and decimate < len(faces):
         import igl
+        from scipy.spatial import cKDTree
 
         t0 = time.perf_counter()
         out = igl.decimate(np.asfortranarray(verts), np.asfortranarray(faces.astype(np.int32)), int(decimate))
-        verts, faces = np.ascontiguousarray(out[0]), np.ascontiguousarray(out[1], dtype=np.int64)
+        decimated = np.ascontiguousarray(out[0])
+        if cut.any():  # a decimated vertex is on the cut where its nearest original vertex was
+            cut = cut[cKDTree(verts).query(decimated)[1]]
+        else:
+            cut = np.zeros(len(decimated), dtype=bool)
+        verts, faces = decimated, np.ascontiguousarray(out[1], dtype=np.int64)
         timings["decimate_s"] = time.perf_counter() - t0
 
     colors = None
@@ -313,7 +451,7 @@ def extract_mesh(
         colors = np.clip(np.asarray(colour_fn(verts, -normals), dtype=np.float64), 0.0, 1.0)
         timings["colour_s"] = time.perf_counter() - t0
     return ExtractResult(verts, faces, colors, kept, dropped, len(dropped_ids), float(avol[dropped_ids].sum()),
-                         float(threshold), float(min_volume), timings)
+                         float(threshold), float(min_volume), timings, cut=cut, notes=notes)
 
 
 # ------------------------------------------------------------------ NeRF glue
@@ -350,10 +488,12 @@ def colour_fn_of(nerf, chunk: int = 1 << 16) -> ColourFn:
 
 
 def extract_nerf_mesh(nerf, resolution: int | None = None, threshold: float | None = None,
-                      min_volume: float | None = None, decimate: int | None = None, progress: bool = False) -> ExtractResult:
-    """The surface of a loaded NeRF over its bounds, floaters dropped, vertex colours from the NeRF
-    (what `extract` writes and the add-on's Extract Mesh imports). None means the default (a
-    min_volume of 0 too: "automatic" in the add-on); a resolution of 0 is an error."""
+                      min_volume: float | None = None, decimate: int | None = None, progress: bool = False,
+                      region=None, pick=None) -> ExtractResult:
+    """The surface of a loaded NeRF over its bounds (its inner box when unbounded) or over an edit
+    region within them, floaters dropped, only the part connected to `pick` when given, vertex
+    colours from the NeRF (what `extract` writes and the add-on's Extract Mesh imports). None means
+    the default (a min_volume of 0 too: "automatic" in the add-on); a resolution of 0 is an error."""
     check_extract_options(resolution, threshold, min_volume, decimate)
     return extract_mesh(
         density_fn_of(nerf),
@@ -364,4 +504,6 @@ def extract_nerf_mesh(nerf, resolution: int | None = None, threshold: float | No
         colour_fn=colour_fn_of(nerf),
         decimate=decimate,
         progress=progress,
+        region=region,
+        pick=pick,
     )

@@ -1,10 +1,13 @@
 """File formats of the geometry stages, pure numpy (the add-on may use them).
 
 - PLY: binary little-endian triangle meshes with optional 8-bit vertex colours
+  and an optional `nerf_cut` uchar vertex property (1 on the vertices that
+  close a cut by an edit region, which the cage pins; other tools ignore it)
   (what `extract` writes); reading accepts binary little/big-endian and ASCII
   PLY with float/double/int/uchar vertex properties and triangle faces.
 - Cage `.npz`: `vertices` (N,3 float64), `tets` (M,4 int64) and optional
-  extras (margin, bounds, ...). Loaded with `allow_pickle=False`: no code runs.
+  extras (margin, bounds, `pinned_vertices` (K,) int64 at an edit region's
+  cut, the region's `region_center/size/rotation_euler`, ...). Loaded with `allow_pickle=False`: no code runs.
 
 Writes go to a temporary file in the same folder, then `os.replace`: a crash
 never leaves a half-written file under the target name.
@@ -22,8 +25,10 @@ from ..errors import EngineError
 from ..files import atomic_write
 
 
-def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY; `colors` (N,3) uint8 or float in [0,1] become red/green/blue uchar."""
+def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
+              cut: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY; `colors` (N,3) uint8 or float in [0,1] become red/green/blue uchar;
+    `cut` (N,) bool becomes the `nerf_cut` uchar property (written only when some vertex is cut)."""
     vertices = np.asarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
@@ -34,10 +39,19 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         if colors.dtype != np.uint8:
             colors = np.clip(np.round(np.asarray(colors, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if cut is not None:
+        cut = np.asarray(cut, dtype=bool).ravel()
+        if len(cut) != len(vertices):
+            raise EngineError(f"write_ply: {len(cut)} cut flags for {len(vertices)} vertices")
+        cut = cut if cut.any() else None
+    if cut is not None:
+        fields += [("nerf_cut", "u1")]
     vrec = np.empty(len(vertices), dtype=fields)
     vrec["x"], vrec["y"], vrec["z"] = vertices.T
     if colors is not None:
         vrec["red"], vrec["green"], vrec["blue"] = colors[:, :3].T
+    if cut is not None:
+        vrec["nerf_cut"] = cut
     frec = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     frec["n"] = 3
     frec["i"] = faces
@@ -45,6 +59,8 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     header += ["property float x", "property float y", "property float z"]
     if colors is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
+    if cut is not None:
+        header += ["property uchar nerf_cut"]
     header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
 
     def write(f):
@@ -108,8 +124,9 @@ def _ascii_rows(path, rows, pos, name, count) -> list[list[str]]:
     return [r.split() for r in rows[pos : pos + count]]
 
 
-def read_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(vertices (N,3) float64, faces (F,3) int64, colours (N,3) uint8 or None). Triangles only.
+def read_ply(path, with_cut: bool = False) -> tuple:
+    """(vertices (N,3) float64, faces (F,3) int64, colours (N,3) uint8 or None), and with `with_cut`
+    the `nerf_cut` flags (N,) bool or None. Triangles only.
 
     Every count, row and byte is checked against the header (a truncated or malformed file is an
     EngineError naming it), and vertices must be finite."""
@@ -120,7 +137,7 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         raise EngineError(f"cannot read mesh {path}: {exc.strerror}") from None
     fmt, elements, body_start = _ply_header(path, data)
     order = "<" if fmt == "binary_little_endian" else ">"
-    verts = colors = faces = None
+    verts = colors = faces = cut = None
     if fmt == "ascii":
         rows = [r for r in data[body_start:].decode("ascii", "replace").splitlines() if r.strip()]
         pos = 0
@@ -175,6 +192,8 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
                 raise EngineError(f"{path}: vertex element lacks x/y/z") from None
             if all(c in cols for c in ("red", "green", "blue")):
                 colors = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8)
+            if "nerf_cut" in cols:
+                cut = np.asarray(cols["nerf_cut"]) != 0
     if verts is None or faces is None:
         raise EngineError(f"{path}: a mesh needs vertex and face elements")
     bad = np.flatnonzero(~np.isfinite(verts).all(axis=1))
@@ -183,7 +202,7 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
                           f"({len(bad)} of {len(verts)} vertices do)")
     if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
         raise EngineError(f"{path}: faces index vertices outside 0..{len(verts) - 1}")
-    return verts, faces, colors
+    return (verts, faces, colors, cut) if with_cut else (verts, faces, colors)
 
 
 def save_cage(path, vertices: np.ndarray, tets: np.ndarray, **extra) -> None:
@@ -244,6 +263,11 @@ def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
     if T.min() < 0 or T.max() >= len(V):
         raise EngineError(f"cage {path}: tets index vertices outside 0..{len(V) - 1}")
     out["vertices"], out["tets"] = V.astype(np.float64), T.astype(np.int64)
+    if "pinned_vertices" in out:  # cage vertices pinned at an edit region's cut (cage.cut_pins)
+        P = out["pinned_vertices"]
+        if P.ndim != 1 or not np.issubdtype(P.dtype, np.integer) or (len(P) and (P.min() < 0 or P.max() >= len(V))):
+            raise EngineError(f"cage {path}: `pinned_vertices` must be a list of vertex indices in 0..{len(V) - 1}")
+        out["pinned_vertices"] = P.astype(np.int64)
     if validate:
         from .barycentric import signed_volumes  # pure numpy
 

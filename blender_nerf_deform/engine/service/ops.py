@@ -8,9 +8,11 @@ modification time; cages, embeddings and regions live in the worker session
 
     info                                  the worker's Python, torch and devices
     load     checkpoint                   bounds and configuration of a NeRF
-    extract  checkpoint, threshold, ...   the surface mesh (vertices, faces, colors)
-    cage     vertices + faces [checkpoint, threshold, margin, ...]
-                                          the rest cage and the surface's embedding in it
+    extract  checkpoint, threshold, ... [region, pick]
+                                          the surface mesh (vertices, faces, colors, cut)
+    cage     vertices + faces [+ cut] [checkpoint, threshold, margin, pin_cut, ...]
+                                          the rest cage, the surface's embedding in it,
+                                          the cage vertices pinned at the region's cut
     solve    shared cage/embedding/regions, mode, transforms, answer
                                           a pose: deformed cage vertices, or (answer
                                           "surface") the deformed surface for the preview
@@ -30,10 +32,11 @@ import numpy as np
 
 from ..bend.posed import PosedRenderer
 from ..errors import EngineError
-from ..geometry.cage import build_cage, build_nerf_cage
+from ..geometry.cage import build_cage, build_nerf_cage, cut_pins
 from ..geometry.deform import RegionDeformer, split_regions
 from ..geometry.embedding import Embedding, embed_points
 from ..geometry.extract import extract_nerf_mesh
+from ..geometry.region import region_from_dict
 from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
 from ..nerf.checkpoint import load_nerf
@@ -83,11 +86,19 @@ def extract(job: Job) -> tuple[dict, dict]:
     p = job.params
     model = _model(p)
     job.progress(0.05, "sampling the density grid")
+    region = region_from_dict(p["region"], where="the edit region") if p.get("region") is not None else None
+    pick = p.get("pick")
+    if pick is not None:
+        pick = np.asarray(pick, dtype=np.float64)
+        if pick.shape != (3,) or not np.isfinite(pick).all():
+            raise EngineError(f"the pick point must be three finite numbers, got {p.get('pick')!r}")
     res = extract_nerf_mesh(model, resolution=p.get("resolution"), threshold=p.get("threshold"),
-                            min_volume=p.get("min_volume"))
+                            min_volume=p.get("min_volume"), region=region, pick=pick)
     colors = res.colors if res.colors is not None else np.full((len(res.vertices), 3), 0.8)
-    summary = {"report": res.report(), "kept": len(res.kept), "dropped": res.dropped_count, "timings": res.timings}
-    return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32)}
+    summary = {"report": res.report(), "kept": len(res.kept), "dropped": res.dropped_count, "timings": res.timings,
+               "n_cut": int(res.cut.sum())}
+    return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32),
+                     "cut": res.cut.astype(np.uint8)}
 
 
 @op("cage")
@@ -106,10 +117,16 @@ def cage(job: Job) -> tuple[dict, dict]:
         built = build_cage(vertices, faces, p.get("margin"), **size)
     job.progress(0.9, "embedding the surface")
     embedding = embed_points(vertices, built.vertices, built.tets)
+    cut = job.arrays.get("cut")
+    if cut is not None and len(cut) != len(vertices):
+        raise EngineError(f"{len(cut)} cut flags for a mesh of {len(vertices)} vertices")
+    pinned = (cut_pins(built.vertices, vertices, cut, built.margin) if p.get("pin_cut", True)
+              else np.zeros(0, dtype=np.int64))
     result = {"n_vertices": int(len(built.vertices)), "n_tets": int(len(built.tets)), "margin": built.margin,
-              "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings}
+              "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings,
+              "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0, "n_pinned": int(len(pinned))}
     return result, {"vertices": built.vertices, "tets": built.tets, "tet_ids": embedding.tet_ids,
-                    "weights": embedding.weights}
+                    "weights": embedding.weights, "pinned_vertices": pinned}
 
 
 def _embedding(cage_arrays: dict, embedding_arrays: dict) -> Embedding:
@@ -142,7 +159,7 @@ def _handle_pose(job: Job, pose: dict) -> HandlePose:
         job.progress(0.05, f"{mode} precomputation")
         regions = split_regions(reg["handle_index"], reg["handle_counts"])
         return RegionDeformer(cage_arrays["vertices"], cage_arrays["tets"], embedding, regions, reg["pin_index"],
-                              names or None, mode)
+                              names or None, mode, cage_pins=reg.get("cage_pin_index"))
 
     key = (cage_key, emb_key, reg_key, mode, tuple(names))
     fresh = not SESSION.has("deformer", key)
