@@ -325,12 +325,17 @@ def vertices_outside(vertices: np.ndarray, bounds: np.ndarray) -> int:
     return int(np.any((vertices < bounds[0]) | (vertices > bounds[1]), axis=1).sum())
 
 
+PIN_DEPTH = 2.5  # margins: how far from the cut the cage is pinned
+
+
 def cut_pins(cage_vertices: np.ndarray, mesh_vertices: np.ndarray, cut: np.ndarray | None, margin: float) -> np.ndarray:
     """Cage vertices to pin where an edit region cut the scene (sorted indices; empty without a cut).
 
     A cage vertex is pinned when the cut is about as near to it as the object is (within half
-    the margin): the cage's side beyond the cut and the rim around it, so the deformation fades
-    to nothing where the object meets the rest of the scene, and no seam opens there."""
+    the margin), and not farther than PIN_DEPTH margins (the envelope lies about two margins out,
+    so its side beyond the cut is inside that): the cage's side beyond the cut and the rim around
+    it, and a band of the object's inside above the cut, so the deformation fades to nothing where
+    the object meets the rest of the scene and no seam opens there."""
     from scipy.spatial import cKDTree
 
     if cut is None or not np.any(cut):
@@ -339,7 +344,7 @@ def cut_pins(cage_vertices: np.ndarray, mesh_vertices: np.ndarray, cut: np.ndarr
     C = np.asarray(cage_vertices, dtype=np.float64)
     d_any = cKDTree(M).query(C)[0]
     d_cut = cKDTree(M[np.asarray(cut, dtype=bool)]).query(C)[0]
-    return np.flatnonzero(d_cut <= d_any + 0.5 * float(margin)).astype(np.int64)
+    return np.flatnonzero((d_cut <= d_any + 0.5 * float(margin)) & (d_cut <= PIN_DEPTH * float(margin))).astype(np.int64)
 
 
 def cut_from_region(mesh_vertices: np.ndarray, region) -> np.ndarray:
