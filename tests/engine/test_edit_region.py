@@ -201,3 +201,51 @@ def test_a_region_past_the_box_is_cut_by_the_box_too():
     check_closed_mesh(res.vertices, res.faces)
     assert res.cut.any() and np.all(res.vertices[res.cut][:, 2] > 1.4)
     assert "outside the NeRF's box" in res.report()
+
+
+STATUE_REGION = {"center": [0.0, 0.0, 0.0], "size": [0.9, 0.9, 1.9], "rotation_euler": [0.0, 0.0, 0.0]}
+BOX_REGION = {"center": [0.75, 0.0, -0.7], "size": [0.5, 0.5, 0.5], "rotation_euler": [0.0, 0.0, 0.2]}
+
+
+def test_two_regions_give_two_objects_each_with_its_own_cage():
+    from blender_nerf_deform.engine.geometry.cage import build_part_cages, part_cut_pins
+    from blender_nerf_deform.engine.geometry.embedding import embed_points_by_part
+    from blender_nerf_deform.engine.geometry.extract import extract_regions
+
+    regions = [region_from_dict(STATUE_REGION), region_from_dict(BOX_REGION)]
+    res = extract_regions(lambda region, pick: extract_mesh(density, BOUNDS, resolution=64, region=region, pick=pick),
+                          regions)
+    assert set(np.unique(res.part)) == {0, 1}
+    box_part = np.max(np.abs(res.vertices - [0.75, 0.0, -0.7]), axis=1) < 0.2
+    assert np.array_equal(box_part, res.part == 1)
+    assert res.cut[res.part == 0].any() and not res.cut[res.part == 1].any()  # the box stands free
+    cage, cage_part = build_part_cages(res.vertices, res.faces, res.part, lambda V, F, i: build_cage(V, F))
+    embedding = embed_points_by_part(res.vertices, res.part, cage.vertices, cage.tets, cage_part)
+    assert np.all(cage_part[embedding.corners] == res.part[:, None])  # each object in its own cage
+    pins = part_cut_pins(cage.vertices, cage_part, res.vertices, res.part, res.cut, cage.margin)
+    assert len(pins) and np.all(cage_part[pins] == 0)
+    # A handle on the statue's top: the statue turns, the box (no handle, no pin) stays put.
+    top = np.flatnonzero((res.part == 0) & (res.vertices[:, 2] > 0.6))
+    turn = np.eye(4)
+    turn[:3, :3] = euler_xyz_matrix(0.0, 0.3, 0.0)
+    posed, stats = RegionDeformer(cage.vertices, cage.tets, embedding, [top], cage_pins=pins).solve([turn])
+    assert stats["converged"]
+    assert np.abs(posed[cage_part == 1] - cage.vertices[cage_part == 1]).max() == 0.0
+    assert np.linalg.norm(posed[cage_part == 0] - cage.vertices[cage_part == 0], axis=1).max() > 0.1
+    # And a handle on the box moves only the box.
+    box_handle = np.flatnonzero(res.part == 1)
+    lift = np.eye(4)
+    lift[2, 3] = 0.2
+    posed, _ = RegionDeformer(cage.vertices, cage.tets, embedding, [box_handle], cage_pins=pins).solve([lift])
+    assert np.abs(posed[cage_part == 0] - cage.vertices[cage_part == 0]).max() < 1e-9
+    assert np.allclose(posed[cage_part == 1][:, 2] - cage.vertices[cage_part == 1][:, 2], 0.2, atol=1e-6)
+
+
+def test_overlapping_regions_and_a_pick_outside_them_are_refused():
+    from blender_nerf_deform.engine.geometry.extract import extract_regions
+
+    one = lambda region, pick: extract_mesh(density, BOUNDS, resolution=32, region=region, pick=pick)  # noqa: E731
+    with pytest.raises(EngineError, match="edit regions 1 and 2 overlap"):
+        extract_regions(one, [region_from_dict(REGION), region_from_dict(BOX_REGION)])
+    with pytest.raises(EngineError, match="lies in none of the 2 edit regions"):
+        extract_regions(one, [region_from_dict(STATUE_REGION), region_from_dict(BOX_REGION)], pick=[-1.2, -1.2, 0.0])

@@ -341,5 +341,11 @@ def test_shared_captures_load_in_their_formats():
     _one_line_error(r"fern/sparse/0: incomplete COLMAP model: no images\.bin .*poses_bounds\.npy", fern / "sparse" / "0")
     ds = load_dataset(fox, downscale=8, load_images=False)
     assert ds.source_format == "instant-ngp"
-    np.testing.assert_allclose(ds.inner_aabb, [[-0.5 / 0.33] * 3, [0.5 / 0.33] * 3], rtol=1e-6)
-    np.testing.assert_allclose(ds.aabb, 4 * ds.inner_aabb, rtol=1e-6)
+    np.testing.assert_allclose(ds.aabb, [[-4 * 0.5 / 0.33] * 3, [4 * 0.5 / 0.33] * 3], rtol=1e-6)
+    # The inner box holds instant-ngp's unit cube and what the cameras frame, within the scene: the
+    # fox's nose (2.5 from the centre, where a NeRF of it puts the surface) lies outside the unit cube.
+    ilo, ihi = ds.inner_aabb
+    assert np.all(ilo <= -0.5 / 0.33 + 1e-6) and np.all(ihi >= 0.5 / 0.33 - 1e-6)
+    assert np.all(ilo >= ds.aabb[0]) and np.all(ihi <= ds.aabb[1])
+    nose = np.array([2.48, -1.30, -0.22])
+    assert np.all(nose > ilo + 0.5) and np.all(nose < ihi - 0.5)

@@ -234,6 +234,20 @@ def _random_cage(tmp):
     return path
 
 
+def _region_file(tmp: Path, text) -> Path:
+    path = tmp / "region.json"
+    path.write_text(text if isinstance(text, str) else json.dumps(text))
+    return path
+
+
+def _extract_in(base, tmp, region, *extra):
+    return ["extract", "--nerf", base["ckpt"], "--out", tmp / "m.ply", "--resolution", "32",
+            "--region", _region_file(tmp, region) if region is not None else tmp / "missing.json", *extra]
+
+
+UNIT_REGION = {"center": [0, 0, 0], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}
+
+
 def _collapsed_pose(base, tmp):
     np.save(tmp / "collapsed.npy", np.zeros_like(np.load(base["rest"])))
     return tmp / "collapsed.npy"
@@ -293,6 +307,21 @@ CASES = {
     "read-only render --out": lambda b, t: ([*_c(b, t)[:5], "--out", _unwritable_folder(t) / "frames"], "frames", []),
     "read-only extract --out": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", _unwritable_folder(t) / "m.ply"], "m.ply", []),
     "read-only train --out": lambda b, t: (["train", "--data", b["data"], "--out", _unwritable_folder(t) / "run"], "run", []),
+    # --- edit regions (issue 14): each names the file or value at fault, nothing written
+    "extract --region missing file": lambda b, t: (_extract_in(b, t, None), ("missing.json", "does not exist"), ["m.ply"]),
+    "extract --region not JSON": lambda b, t: (_extract_in(b, t, "{center: 1"), ("region.json", "not valid JSON"), ["m.ply"]),
+    "extract --region zero size": lambda b, t: (_extract_in(b, t, {**UNIT_REGION, "size": [1, 0, 1]}),
+                                                ("region.json", "degenerate"), ["m.ply"]),
+    "extract --region without rotation": lambda b, t: (_extract_in(b, t, {"center": [0, 0, 0], "size": [1, 1, 1]}),
+                                                       ("region.json", "rotation_euler"), ["m.ply"]),
+    "extract --region outside the box": lambda b, t: (_extract_in(b, t, {**UNIT_REGION, "center": [5, 0, 0]}),
+                                                      ("lies outside the NeRF's box",), ["m.ply"]),
+    "extract --region with nothing dense": lambda b, t: (_extract_in(b, t, UNIT_REGION, "--threshold", "1e30"),
+                                                         ("largest density", "region centred at (0, 0, 0)"), ["m.ply"]),
+    "extract --pick nan": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--pick", "nan", "0", "0"],
+                                        ("--pick", "nan"), ["m.ply"]),
+    "cage --region not JSON": lambda b, t: (_cage_cmd(b, t, None, "--region", _region_file(t, "[1, 2")),
+                                            ("region.json", "not valid JSON"), ["cage.npz"]),
     # --- unclear messages before
     "cage npz of random bytes": lambda b, t: (_bent(b, t, _random_cage(t)), ("random.npz", "not a cage file"), ["frames"]),
     "collapsed pose": lambda b, t: (_bent(b, t, b["cage"], _collapsed_pose(b, t)), ("collapsed.npy", "collapsed the cage"), ["frames"]),

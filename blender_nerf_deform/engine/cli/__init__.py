@@ -86,9 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-volume", type=float, metavar="V", help="drop connected components smaller than V "
                    "(world units cubed; default: 1%% of the largest component's volume)")
     p.add_argument("--decimate", type=int, metavar="FACES", help="decimate the filtered mesh to about FACES faces")
-    p.add_argument("--region", metavar="REGION.json", help="extract only inside this oriented box "
+    p.add_argument("--region", metavar="REGION.json", action="append", help="extract only inside this oriented box "
                    '({"center": [x,y,z], "size": [sx,sy,sz], "rotation_euler": [rx,ry,rz]}, radians, XYZ, the NeRF\'s '
-                   "frame): the resolution is spent there and the surface is closed where the box cuts the scene")
+                   "frame): the resolution is spent there and the surface is closed where the box cuts the scene; "
+                   "repeat it for several objects (one surface each, `nerf_part` in the PLY; one cage each)")
     p.add_argument("--pick", type=float, nargs=3, metavar=("X", "Y", "Z"), help="keep only the part of the surface "
                    "connected to this point on the object (grown over the density grid, within the region)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")

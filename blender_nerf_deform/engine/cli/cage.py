@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..files import check_writable
-from ..geometry.cage import build_nerf_cage, check_cage_options, cut_from_region, cut_pins, vertices_outside
+from ..geometry.cage import (build_nerf_cage, build_part_cages, check_cage_options, cut_from_region, cut_pins,
+                             part_cut_pins, vertices_outside)
 from ..geometry.mesh_io import read_ply, save_cage
 from ..geometry.region import load_region
 from ..nerf.checkpoint import load_nerf
@@ -24,15 +25,28 @@ def main(args) -> int:
     check_cage_options(args.margin, args.edge_length, args.target_tets, args.threshold)
     region = load_region(args.region) if args.region else None
     check_writable(args.out)
-    verts, faces, _, cut = read_ply(args.mesh, with_cut=True)
+    verts, faces, _, cut, part = read_ply(args.mesh, with_cut=True, with_part=True)
     if cut is None and region is not None:
         cut = cut_from_region(verts, region)
     nerf = load_nerf(args.nerf)
-    cage = build_nerf_cage(verts, faces, nerf, args.margin, args.threshold,
-                           edge_length=args.edge_length, target_tets=args.target_tets, name=f"mesh {args.mesh}")
+
+    def build_one(V, F, index=None):
+        name = f"mesh {args.mesh}" + (f" (edit region {index + 1})" if index is not None else "")
+        return build_nerf_cage(V, F, nerf, args.margin, args.threshold, edge_length=args.edge_length,
+                               target_tets=args.target_tets, name=name)
+
     aabb = nerf.aabb.detach().cpu().double().numpy().reshape(2, 3)
-    pinned = np.zeros(0, dtype=np.int64) if args.no_pin_cut else cut_pins(cage.vertices, verts, cut, cage.margin)
-    extra = {"margin": cage.margin, "clearance": cage.clearance, "bounds": aabb, "pinned_vertices": pinned}
+    extra = {}
+    if part is not None and len(np.unique(part)) > 1:  # several edit regions: a cage per object, in one
+        cage, cage_part = build_part_cages(verts, faces, part, build_one)
+        pinned = part_cut_pins(cage.vertices, cage_part, verts, part, cut, cage.margin)
+        extra["vertex_part"] = cage_part
+    else:
+        cage = build_one(verts, faces)
+        pinned = cut_pins(cage.vertices, verts, cut, cage.margin)
+    if args.no_pin_cut:
+        pinned = np.zeros(0, dtype=np.int64)
+    extra.update({"margin": cage.margin, "clearance": cage.clearance, "bounds": aabb, "pinned_vertices": pinned})
     if region is not None:
         extra.update({f"region_{k}": np.asarray(v) for k, v in region.to_dict().items()})
     save_cage(args.out, cage.vertices, cage.tets, **extra)

@@ -352,3 +352,53 @@ def cut_from_region(mesh_vertices: np.ndarray, region) -> np.ndarray:
     the region's boundary (extraction closes a cut just outside it)."""
     local = np.abs(region.to_local(mesh_vertices))
     return np.any(local >= region.half * (1 - 1e-6), axis=1)
+
+
+def submesh(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, faces, original indices) of the faces whose vertices all lie in `keep` (bool per vertex)."""
+    F = np.asarray(faces, dtype=np.int64)
+    F = F[keep[F].all(axis=1)]
+    used = np.flatnonzero(keep)
+    remap = np.full(len(vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return np.asarray(vertices)[used], remap[F], used
+
+
+def build_part_cages(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, build_one) -> tuple[Cage, np.ndarray]:
+    """One cage per part of a mesh (the objects of several edit regions), in one cage: (the cages'
+    vertices and tets concatenated, the part of each cage vertex). `build_one(vertices, faces, i)`
+    builds part i's Cage (build_nerf_cage with its options). Each object gets its own margin and
+    no tet joins two objects, so each deforms on its own; the cage's margin and clearance are the
+    smallest of the parts'."""
+    parts = np.asarray(parts, dtype=np.int64).ravel()
+    if len(parts) != len(vertices):
+        raise EngineError(f"{len(parts)} part labels for a mesh of {len(vertices)} vertices")
+    cages, labels, offset = [], [], 0
+    for i in np.unique(parts):
+        V, F, _ = submesh(vertices, faces, parts == i)
+        if len(F) == 0:
+            raise EngineError(f"part {i + 1} of the mesh (edit region {i + 1}) has no faces")
+        cage = build_one(V, F, int(i))
+        cages.append((cage.vertices, cage.tets + offset, cage))
+        labels.append(np.full(len(cage.vertices), i, dtype=np.int64))
+        offset += len(cage.vertices)
+    timings = {}
+    for _v, _t, c in cages:
+        for k, v in c.timings.items():
+            timings[k] = timings.get(k, 0) + v
+    merged = Cage(vertices=np.concatenate([c[0] for c in cages]), tets=np.concatenate([c[1] for c in cages]),
+                  margin=min(c[2].margin for c in cages), clearance=min(c[2].clearance for c in cages), timings=timings)
+    return merged, np.concatenate(labels)
+
+
+def part_cut_pins(cage_vertices: np.ndarray, cage_part: np.ndarray, mesh_vertices: np.ndarray, mesh_part: np.ndarray,
+                  cut: np.ndarray | None, margin: float) -> np.ndarray:
+    """`cut_pins` part by part: a cage vertex is pinned only by its own object's cut."""
+    if cut is None or not np.any(cut):
+        return np.zeros(0, dtype=np.int64)
+    cut = np.asarray(cut, dtype=bool)
+    out = []
+    for i in np.unique(cage_part):
+        own_cage, own_mesh = np.flatnonzero(cage_part == i), np.flatnonzero(mesh_part == i)
+        out.append(own_cage[cut_pins(cage_vertices[own_cage], mesh_vertices[own_mesh], cut[own_mesh], margin)])
+    return np.sort(np.concatenate(out)).astype(np.int64)

@@ -288,15 +288,34 @@ class ArapDeformer:
                 break
         return U, it, step
 
+    def _blended_start(self, transforms: list) -> np.ndarray:
+        """The linear blend of the handles' and pins' affines, piece by piece of the cage: a piece
+        (one object of several edit regions) blends only what lies on it, so a handle on one
+        object does not start another one off its rest."""
+        regions = self.handles + self.pins
+        mats = [_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins)
+        if not hasattr(self, "_pieces"):
+            self._pieces = tet_components(len(self.rest), self.tets)
+        if self._pieces.max() == 0:
+            return linear_blend(self.rest, regions, mats)
+        out = np.array(self.rest, dtype=np.float64, copy=True)
+        for piece in np.unique(self._pieces):
+            own = np.flatnonzero(self._pieces == piece)
+            local = np.full(len(self.rest), -1, dtype=np.int64)
+            local[own] = np.arange(len(own))
+            mine = [(local[r[self._pieces[r] == piece]], A) for r, A in zip(regions, mats)]
+            mine = [(r, A) for r, A in mine if len(r)]
+            if mine:
+                out[own] = linear_blend(self.rest[own], [r for r, _ in mine], [A for _, A in mine])
+        return out
+
     def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None, strict: bool = False) -> ArapResult:
         """Iterate from `initial` (default: the linear blend of the handles' affines, a deterministic
         start that is already right for rigid motions) until converged or `max_iter` iterations."""
         t0 = time.perf_counter()
         bc = self.constraints(transforms)
         if initial is None:
-            regions = self.handles + self.pins
-            mats = [_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins)
-            initial = linear_blend(self.rest, regions, mats)
+            initial = self._blended_start(transforms)
         U = np.array(initial, dtype=np.float64)
         U[self.b] = bc
         U, it, step = self._iterate(bc, U, max_iter, tol)
@@ -335,6 +354,33 @@ def split_regions(index: np.ndarray, counts: np.ndarray) -> list[np.ndarray]:
     return np.split(index, np.cumsum(counts)[:-1]) if len(counts) else []
 
 
+def tet_components(n_vertices: int, tets: np.ndarray) -> np.ndarray:
+    """Connected piece of each vertex of a tet mesh (labels 0..k-1; scipy's graph components)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    T = np.asarray(tets, dtype=np.int64)
+    edges = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 3]]])
+    graph = coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
+    return connected_components(graph, directed=False)[1]
+
+
+def unconstrained_components(n_vertices: int, tets: np.ndarray, constrained: list) -> np.ndarray:
+    """Vertices of the cage's connected pieces that hold no constrained vertex (sorted indices).
+
+    A cage built around several objects (one per edit region) falls apart into pieces that share
+    no tet; ARAP cannot place a piece nothing holds (its system is singular there), and the artist
+    means it to stay where it is."""
+    labels = tet_components(n_vertices, tets)
+    count = int(labels.max()) + 1
+    if count == 1:
+        return np.zeros(0, dtype=np.int64)
+    held = np.zeros(count, dtype=bool)
+    for region in constrained:
+        held[labels[np.asarray(region, dtype=np.int64)]] = True
+    return np.flatnonzero(~held[labels]).astype(np.int64)
+
+
 class RegionDeformer:
     """The cage pose of handle transforms: regions of the extracted mesh moved by their handles.
 
@@ -369,6 +415,10 @@ class RegionDeformer:
             cut = np.setdiff1d(cut, moved)
             if len(cut):
                 fixed = [np.union1d(fixed[0], cut)] if fixed else [cut]
+        if mode == "ARAP":
+            free = unconstrained_components(len(self.rest), tets, self.cage_regions + fixed)
+            if len(free):  # a cage of several objects (edit regions): one without handle or pin stays
+                fixed = [np.union1d(fixed[0], free)] if fixed else [free]
         self.arap = ArapDeformer(self.rest, tets, self.cage_regions, fixed) if mode == "ARAP" else None
         self.precompute_s = self.arap.precompute_s if self.arap is not None else 0.0
 

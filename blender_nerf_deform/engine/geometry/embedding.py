@@ -124,3 +124,23 @@ def embed_points(points: np.ndarray, rest_vertices: np.ndarray, tets: np.ndarray
         G = inv[near]
         w[missing] = np.einsum("nij,nj->ni", G[:, :, :3], P[missing]) + G[:, :, 3]
     return Embedding(tet_ids=tid, corners=T[tid], weights=w, n_outside=int(len(missing)))
+
+
+def embed_points_by_part(points: np.ndarray, point_part: np.ndarray, rest_vertices: np.ndarray, tets: np.ndarray,
+                         vertex_part: np.ndarray) -> Embedding:
+    """Embed each part's points in that part's own cage only (cage.build_part_cages): where two
+    objects' cages meet, a point of one is never attached to the other's tets."""
+    V, T = _as_tets(rest_vertices, tets)
+    P = np.asarray(points, dtype=np.float64)
+    tet_part = np.asarray(vertex_part)[T[:, 0]]
+    tid = np.empty(len(P), dtype=np.int64)
+    w = np.empty((len(P), 4))
+    outside = 0
+    for i in np.unique(point_part):
+        pts, own = np.flatnonzero(point_part == i), np.flatnonzero(tet_part == i)
+        if len(own) == 0:
+            raise EngineError(f"part {i + 1} of the mesh has no cage of its own")
+        e = embed_points(P[pts], V, T[own])
+        tid[pts], w[pts] = own[e.tet_ids], e.weights
+        outside += e.n_outside
+    return Embedding(tet_ids=tid, corners=T[tid], weights=w, n_outside=outside)

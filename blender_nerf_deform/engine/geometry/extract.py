@@ -69,6 +69,7 @@ class ExtractResult:
     timings: dict = field(default_factory=dict)
     cut: np.ndarray | None = None  # (N,) bool: vertices that close a cut by the region or the bounds
     notes: list = field(default_factory=list)  # what the region and the pick did, for the report
+    part: np.ndarray | None = None  # (N,) int: which edit region each vertex was extracted in (several regions)
 
     def report(self) -> str:
         lines = list(self.notes) + [
@@ -506,4 +507,51 @@ def extract_nerf_mesh(nerf, resolution: int | None = None, threshold: float | No
         progress=progress,
         region=region,
         pick=pick,
+    )
+
+
+def extract_nerf_regions(nerf, regions: list, pick=None, resolution: int | None = None, threshold: float | None = None,
+                         min_volume: float | None = None, decimate: int | None = None,
+                         progress: bool = False) -> ExtractResult:
+    """One surface per edit region of a loaded NeRF, in one mesh (`extract_regions`)."""
+    return extract_regions(lambda region, point: extract_nerf_mesh(nerf, resolution, threshold, min_volume, decimate,
+                                                                   progress, region=region, pick=point),
+                           regions, pick)
+
+
+def extract_regions(extract_one, regions: list, pick=None) -> ExtractResult:
+    """One surface per edit region (several objects of one capture, each edited on its own), in
+    one mesh: `part` says which region each vertex came from. `extract_one(region, pick)` extracts
+    one (extract_mesh with its options). The pick applies to the region that holds the pick
+    point. Regions must not overlap (their cages would claim the same space)."""
+    from .region import check_regions_apart
+
+    check_regions_apart(regions)
+    if len(regions) == 1:
+        res = extract_one(regions[0], pick)
+        res.part = np.zeros(len(res.vertices), dtype=np.int64)
+        return res
+    point = None if pick is None else np.asarray(pick, dtype=np.float64).reshape(1, 3)
+    holder = next((i for i, r in enumerate(regions) if point is not None and r.contains(point)[0]), None)
+    if point is not None and holder is None:
+        raise EngineError(f"the pick point ({', '.join(f'{x:.3g}' for x in point[0])}) lies in none of the "
+                          f"{len(regions)} edit regions: put it on the object to keep, inside its region")
+    results = []
+    for i, region in enumerate(regions):
+        try:
+            results.append(extract_one(region, pick if i == holder else None))
+        except EngineError as error:
+            raise EngineError(f"edit region {i + 1}: {error}") from None
+    offsets = np.cumsum([0] + [len(r.vertices) for r in results])
+    return ExtractResult(
+        vertices=np.concatenate([r.vertices for r in results]),
+        faces=np.concatenate([r.faces + o for r, o in zip(results, offsets)]),
+        colors=None if any(r.colors is None for r in results) else np.concatenate([r.colors for r in results]),
+        kept=[c for r in results for c in r.kept], dropped=[c for r in results for c in r.dropped],
+        dropped_count=sum(r.dropped_count for r in results), dropped_volume=sum(r.dropped_volume for r in results),
+        threshold=results[0].threshold, min_volume=min(r.min_volume for r in results),
+        timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
+        cut=np.concatenate([r.cut for r in results]),
+        notes=[f"edit region {i + 1}: {line}" for i, r in enumerate(results) for line in r.notes],
+        part=np.repeat(np.arange(len(results)), np.diff(offsets)),
     )

@@ -26,9 +26,10 @@ from ..files import atomic_write
 
 
 def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
-              cut: np.ndarray | None = None) -> None:
+              cut: np.ndarray | None = None, part: np.ndarray | None = None) -> None:
     """Binary little-endian PLY; `colors` (N,3) uint8 or float in [0,1] become red/green/blue uchar;
-    `cut` (N,) bool becomes the `nerf_cut` uchar property (written only when some vertex is cut)."""
+    `cut` (N,) bool becomes the `nerf_cut` uchar property (written only when some vertex is cut),
+    `part` (N,) int the `nerf_part` uchar property (the edit region; written when there are several)."""
     vertices = np.asarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
@@ -46,12 +47,21 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         cut = cut if cut.any() else None
     if cut is not None:
         fields += [("nerf_cut", "u1")]
+    if part is not None:
+        part = np.asarray(part, dtype=np.int64).ravel()
+        if len(part) != len(vertices) or (len(part) and (part.min() < 0 or part.max() > 255)):
+            raise EngineError(f"write_ply: part labels must be 0..255, one per vertex")
+        part = part if len(part) and part.max() > 0 else None
+    if part is not None:
+        fields += [("nerf_part", "u1")]
     vrec = np.empty(len(vertices), dtype=fields)
     vrec["x"], vrec["y"], vrec["z"] = vertices.T
     if colors is not None:
         vrec["red"], vrec["green"], vrec["blue"] = colors[:, :3].T
     if cut is not None:
         vrec["nerf_cut"] = cut
+    if part is not None:
+        vrec["nerf_part"] = part
     frec = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     frec["n"] = 3
     frec["i"] = faces
@@ -61,6 +71,8 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         header += ["property uchar red", "property uchar green", "property uchar blue"]
     if cut is not None:
         header += ["property uchar nerf_cut"]
+    if part is not None:
+        header += ["property uchar nerf_part"]
     header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
 
     def write(f):
@@ -124,9 +136,10 @@ def _ascii_rows(path, rows, pos, name, count) -> list[list[str]]:
     return [r.split() for r in rows[pos : pos + count]]
 
 
-def read_ply(path, with_cut: bool = False) -> tuple:
-    """(vertices (N,3) float64, faces (F,3) int64, colours (N,3) uint8 or None), and with `with_cut`
-    the `nerf_cut` flags (N,) bool or None. Triangles only.
+def read_ply(path, with_cut: bool = False, with_part: bool = False) -> tuple:
+    """(vertices (N,3) float64, faces (F,3) int64, colours (N,3) uint8 or None), with `with_cut`
+    the `nerf_cut` flags (N,) bool or None, with `with_part` the `nerf_part` labels (N,) int64
+    or None (after the cut flags). Triangles only.
 
     Every count, row and byte is checked against the header (a truncated or malformed file is an
     EngineError naming it), and vertices must be finite."""
@@ -137,7 +150,7 @@ def read_ply(path, with_cut: bool = False) -> tuple:
         raise EngineError(f"cannot read mesh {path}: {exc.strerror}") from None
     fmt, elements, body_start = _ply_header(path, data)
     order = "<" if fmt == "binary_little_endian" else ">"
-    verts = colors = faces = cut = None
+    verts = colors = faces = cut = part = None
     if fmt == "ascii":
         rows = [r for r in data[body_start:].decode("ascii", "replace").splitlines() if r.strip()]
         pos = 0
@@ -194,6 +207,8 @@ def read_ply(path, with_cut: bool = False) -> tuple:
                 colors = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8)
             if "nerf_cut" in cols:
                 cut = np.asarray(cols["nerf_cut"]) != 0
+            if "nerf_part" in cols:
+                part = np.asarray(cols["nerf_part"]).astype(np.int64)
     if verts is None or faces is None:
         raise EngineError(f"{path}: a mesh needs vertex and face elements")
     bad = np.flatnonzero(~np.isfinite(verts).all(axis=1))
@@ -202,7 +217,7 @@ def read_ply(path, with_cut: bool = False) -> tuple:
                           f"({len(bad)} of {len(verts)} vertices do)")
     if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
         raise EngineError(f"{path}: faces index vertices outside 0..{len(verts) - 1}")
-    return (verts, faces, colors, cut) if with_cut else (verts, faces, colors)
+    return (verts, faces, colors) + ((cut,) if with_cut else ()) + ((part,) if with_part else ())
 
 
 def save_cage(path, vertices: np.ndarray, tets: np.ndarray, **extra) -> None:

@@ -68,20 +68,23 @@ class EditRegion:
         return np.stack([c.min(0), c.max(0)])
 
     def overlaps_box(self, bounds: np.ndarray) -> bool:
-        """Whether the oriented box meets the axis-aligned box `bounds` (2,3): the separating axis test."""
+        """Whether the oriented box meets the axis-aligned box `bounds` (2,3)."""
         b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
-        bc, bh = 0.5 * (b[0] + b[1]), 0.5 * (b[1] - b[0])
-        A, d = self.rotation, self.center - bc
-        axes = [np.eye(3)[i] for i in range(3)] + [A[:, i] for i in range(3)]
-        axes += [np.cross(np.eye(3)[i], A[:, j]) for i in range(3) for j in range(3)]
+        return self.overlaps(EditRegion(center=0.5 * (b[0] + b[1]), size=b[1] - b[0], rotation=np.eye(3)))
+
+    def overlaps(self, other: "EditRegion") -> bool:
+        """Whether two oriented boxes share interior: the separating axis test (their 3 + 3 face
+        normals and the 9 cross products of their edges); touching faces do not overlap."""
+        A, B, d = self.rotation, other.rotation, other.center - self.center
+        axes = [A[:, i] for i in range(3)] + [B[:, i] for i in range(3)]
+        axes += [np.cross(A[:, i], B[:, j]) for i in range(3) for j in range(3)]
         for axis in axes:
             n = np.linalg.norm(axis)
             if n < 1e-12:
                 continue
             axis = axis / n
-            r_box = float(np.abs(axis) @ bh)
-            r_region = float(np.abs(axis @ A) @ self.half)
-            if abs(float(axis @ d)) > r_box + r_region:
+            reach = float(np.abs(axis @ A) @ self.half) + float(np.abs(axis @ B) @ other.half)
+            if abs(float(axis @ d)) >= reach * (1 - 1e-12):
                 return False
         return True
 
@@ -150,3 +153,12 @@ def check_region_in_box(region: EditRegion, bounds: np.ndarray, what: str = "the
         raise EngineError(f"the {region.describe()} lies outside {what} "
                           f"[{', '.join(f'{x:.3g}' for x in b[0])}] - [{', '.join(f'{x:.3g}' for x in b[1])}]: "
                           "move it onto the object")
+
+
+def check_regions_apart(regions: list) -> None:
+    """EngineError when two edit regions of one NeRF overlap (their cages would claim the same space)."""
+    for i in range(len(regions)):
+        for j in range(i + 1, len(regions)):
+            if regions[i].overlaps(regions[j]):
+                raise EngineError(f"edit regions {i + 1} and {j + 1} overlap ({regions[i].describe()}; "
+                                  f"{regions[j].describe()}): each object needs its own space, move them apart")

@@ -298,8 +298,9 @@ def camera_from_keys(keys: dict, c2w: np.ndarray, w: int, h: int, name: str, whe
     return Camera(c2w, fx, fy, cx, cy, int(w), int(h), name, lens)
 
 
-def derive_aabb(cameras: list) -> np.ndarray:
-    """Box centred where the optical axes meet (least squares), sized so every camera sees it whole."""
+def derive_aabb(cameras: list, wider: bool = False) -> np.ndarray:
+    """Box centred where the optical axes meet (least squares), sized so every camera sees it whole
+    (with `wider`: along its image's longer side, i.e. with the wider field of view)."""
     a = np.zeros((3, 3))
     b = np.zeros(3)
     origins, axes = [], []
@@ -316,6 +317,7 @@ def derive_aabb(cameras: list) -> np.ndarray:
     except np.linalg.LinAlgError:
         center = np.mean(origins, axis=0)
     dist = float(np.mean([np.linalg.norm(o - center) for o in origins]))
-    half_fov = min(min(math.atan(0.5 * c.width / c.fx), math.atan(0.5 * c.height / c.fy)) for c in cameras)
+    pick = max if wider else min
+    half_fov = min(pick(math.atan(0.5 * c.width / c.fx), math.atan(0.5 * c.height / c.fy)) for c in cameras)
     half = max(dist * math.tan(half_fov), 1e-3)
     return np.stack([center - half, center + half]).astype(np.float32)

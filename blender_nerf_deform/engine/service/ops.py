@@ -8,11 +8,13 @@ modification time; cages, embeddings and regions live in the worker session
 
     info                                  the worker's Python, torch and devices
     load     checkpoint                   bounds and configuration of a NeRF
-    extract  checkpoint, threshold, ... [region, pick]
-                                          the surface mesh (vertices, faces, colors, cut)
-    cage     vertices + faces [+ cut] [checkpoint, threshold, margin, pin_cut, ...]
-                                          the rest cage, the surface's embedding in it,
-                                          the cage vertices pinned at the region's cut
+    extract  checkpoint, threshold, ... [regions (or region), pick]
+                                          the surface mesh (vertices, faces, colors, cut,
+                                          part: the edit region of each vertex)
+    cage     vertices + faces [+ cut, part] [checkpoint, threshold, margin, pin_cut, ...]
+                                          the rest cage (one per part, in one), the
+                                          surface's embedding in it, the cage vertices
+                                          pinned at the regions' cuts
     solve    shared cage/embedding/regions, mode, transforms, answer
                                           a pose: deformed cage vertices, or (answer
                                           "surface") the deformed surface for the preview
@@ -32,10 +34,10 @@ import numpy as np
 
 from ..bend.posed import PosedRenderer
 from ..errors import EngineError
-from ..geometry.cage import build_cage, build_nerf_cage, cut_pins
+from ..geometry.cage import build_cage, build_nerf_cage, build_part_cages, cut_pins, part_cut_pins
 from ..geometry.deform import RegionDeformer, split_regions
-from ..geometry.embedding import Embedding, embed_points
-from ..geometry.extract import extract_nerf_mesh
+from ..geometry.embedding import Embedding, embed_points, embed_points_by_part
+from ..geometry.extract import extract_nerf_mesh, extract_nerf_regions
 from ..geometry.region import region_from_dict
 from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
@@ -86,19 +88,26 @@ def extract(job: Job) -> tuple[dict, dict]:
     p = job.params
     model = _model(p)
     job.progress(0.05, "sampling the density grid")
-    region = region_from_dict(p["region"], where="the edit region") if p.get("region") is not None else None
+    listed = p.get("regions") or ([p["region"]] if p.get("region") is not None else [])
+    if not isinstance(listed, list):
+        raise EngineError(f"`regions` must be a list of edit regions, got {type(listed).__name__}")
+    regions = [region_from_dict(r, where=f"edit region {i + 1}") for i, r in enumerate(listed)]
     pick = p.get("pick")
     if pick is not None:
         pick = np.asarray(pick, dtype=np.float64)
         if pick.shape != (3,) or not np.isfinite(pick).all():
             raise EngineError(f"the pick point must be three finite numbers, got {p.get('pick')!r}")
-    res = extract_nerf_mesh(model, resolution=p.get("resolution"), threshold=p.get("threshold"),
-                            min_volume=p.get("min_volume"), region=region, pick=pick)
+    options = {"resolution": p.get("resolution"), "threshold": p.get("threshold"), "min_volume": p.get("min_volume")}
+    if regions:
+        res = extract_nerf_regions(model, regions, pick=pick, **options)
+    else:
+        res = extract_nerf_mesh(model, pick=pick, **options)
     colors = res.colors if res.colors is not None else np.full((len(res.vertices), 3), 0.8)
+    part = res.part if res.part is not None else np.zeros(len(res.vertices), dtype=np.int64)
     summary = {"report": res.report(), "kept": len(res.kept), "dropped": res.dropped_count, "timings": res.timings,
-               "n_cut": int(res.cut.sum())}
+               "n_cut": int(res.cut.sum()), "n_parts": int(part.max()) + 1 if len(part) else 0}
     return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32),
-                     "cut": res.cut.astype(np.uint8)}
+                     "cut": res.cut.astype(np.uint8), "part": part.astype(np.int32)}
 
 
 @op("cage")
@@ -110,18 +119,31 @@ def cage(job: Job) -> tuple[dict, dict]:
     p = job.params
     job.progress(0.05, "tetrahedralizing")
     size = {"edge_length": p.get("edge_length"), "target_tets": p.get("target_tets")}
-    if p.get("checkpoint"):
-        built = build_nerf_cage(vertices, faces, _model(p), p.get("margin"), p.get("threshold"), **size,
-                                log=lambda line: print(line, file=sys.stderr))
+    cut, part = job.arrays.get("cut"), job.arrays.get("part")
+    for name, flags in (("cut flags", cut), ("part labels", part)):
+        if flags is not None and len(flags) != len(vertices):
+            raise EngineError(f"{len(flags)} {name} for a mesh of {len(vertices)} vertices")
+
+    def build_one(V, F, _index=0):
+        if p.get("checkpoint"):
+            return build_nerf_cage(V, F, _model(p), p.get("margin"), p.get("threshold"), **size,
+                                   log=lambda line: print(line, file=sys.stderr))
+        return build_cage(V, F, p.get("margin"), **size)
+
+    several = part is not None and len(np.unique(part)) > 1
+    if several:  # one cage per edit region's object, in one cage
+        built, cage_part = build_part_cages(vertices, faces, part, build_one)
     else:
-        built = build_cage(vertices, faces, p.get("margin"), **size)
+        built = build_one(vertices, faces)
     job.progress(0.9, "embedding the surface")
-    embedding = embed_points(vertices, built.vertices, built.tets)
-    cut = job.arrays.get("cut")
-    if cut is not None and len(cut) != len(vertices):
-        raise EngineError(f"{len(cut)} cut flags for a mesh of {len(vertices)} vertices")
-    pinned = (cut_pins(built.vertices, vertices, cut, built.margin) if p.get("pin_cut", True)
-              else np.zeros(0, dtype=np.int64))
+    if several:
+        embedding = embed_points_by_part(vertices, part, built.vertices, built.tets, cage_part)
+        pinned = part_cut_pins(built.vertices, cage_part, vertices, part, cut, built.margin)
+    else:
+        embedding = embed_points(vertices, built.vertices, built.tets)
+        pinned = cut_pins(built.vertices, vertices, cut, built.margin)
+    if not p.get("pin_cut", True):
+        pinned = np.zeros(0, dtype=np.int64)
     result = {"n_vertices": int(len(built.vertices)), "n_tets": int(len(built.tets)), "margin": built.margin,
               "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings,
               "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0, "n_pinned": int(len(pinned))}
