@@ -5,10 +5,10 @@ sent to the engine in a worker process.
 """
 
 from . import (cage_ops, composite, extract_ops, handles, nerf_ops, panel, preferences, preview, preview_render, properties,
-               render_engine, worker_client)
+               region_ops, render_engine, worker_client)
 
 # composite after panel: its sub-panel hangs under the main NeRF Deform panel.
-_modules = (preferences, properties, nerf_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel,
+_modules = (preferences, properties, nerf_ops, region_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel,
             composite)
 
 

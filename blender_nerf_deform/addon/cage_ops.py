@@ -5,11 +5,13 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from .cage_store import store_cage, store_embedding
+from .cage_store import store_cage, store_cut_pins, store_embedding
+from .extract_ops import cut_flags
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .preview import PREVIEW_KEY
 from .properties import alive, alive_object, forget_deleted, owning_nerf
+from .region_ops import edit_region_of, extracted_region, same_region
 
 
 def surface_arrays(surface: bpy.types.Object) -> dict[str, np.ndarray]:
@@ -49,10 +51,23 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
         if len(arrays["faces"]) == 0:
             raise ValueError(f"{surface.name} has no faces to build a cage around")
         self._nerf = nerf
+        # The cut is where extraction closed the surface at the region (or the NeRF's box).
+        cut = cut_flags(surface.data)
+        if cut is not None and cut.any():
+            arrays["cut"] = cut.astype(np.uint8)
+        self._note = ""
+        context.view_layer.update()
+        try:
+            changed = not same_region(edit_region_of(nerf), extracted_region(surface))
+        except ValueError:  # the region has no box now
+            changed = True
+        if changed:
+            self._note = (f"the edit region changed since {surface.name} was extracted: the cage wraps the mesh as "
+                          "extracted (delete the cage and handles, and Extract Mesh again, to use the new region)")
         # With the checkpoint and the extraction threshold the worker widens the margin where the
         # NeRF's density is still soft, as the `cage` command does (one stage function for both).
         # (A NeRF object without a checkpoint, made by a script, gets the cage at the plain margin.)
-        params = {"threshold": nerf.nerf_deform.threshold}
+        params = {"threshold": nerf.nerf_deform.threshold, "pin_cut": nerf.nerf_deform.pin_cut}
         if nerf.nerf_deform.checkpoint:
             params["checkpoint"] = checkpoint_path(nerf)
         return "cage", params, arrays
@@ -78,6 +93,7 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
             s.cage = cage
         store_cage(cage.data, arrays["vertices"], arrays["tets"])
         store_embedding(surface.data, arrays["tet_ids"], arrays["weights"])
+        store_cut_pins(cage, arrays.get("pinned_vertices", np.zeros(0, np.int64)))
         # A rebuilt cage starts undeformed: drop the previous preview.
         keys = surface.data.shape_keys
         if keys is not None and (key := keys.key_blocks.get(PREVIEW_KEY)) is not None:
@@ -87,6 +103,13 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
             f"{cage.name}: {result['n_tets']} tets, {result['n_vertices']} vertices, margin {result['margin']:.3g} "
             f"(clearance {result['clearance']:.3g})",
         )
+        n_cut, n_pinned = result.get("n_cut", 0), result.get("n_pinned", 0)
+        if n_pinned:
+            self.report({"INFO"}, f"{cage.name}: {n_pinned} cage vertices pinned at the cut ({n_cut} cut mesh vertices)")
+        elif n_cut and not s.pin_cut:
+            self.report({"INFO"}, f"{cage.name}: Pin Cut is off: the cut ({n_cut} mesh vertices) moves with the cage")
+        if self._note:
+            self.report({"WARNING"}, f"{cage.name}: {self._note}")
         return {"FINISHED"}
 
 

@@ -10,6 +10,11 @@ process or on a farm, so its exact data lives in the file:
   properties of its mesh datablock.
 - The extracted mesh: its embedding in the rest cage, one tet and four
   barycentric weights per vertex, also as ID properties of its mesh.
+- The cage vertices pinned where an edit region cut the scene (Build Cage with
+  Pin Cut): their indices as an ID property of the cage mesh, which is what ARAP
+  keeps at rest, mirrored in the vertex group "NeRF Cut Pin" (weight 1) of the
+  cage object for artists (a modifier's mask in Cage Modifiers mode). Editing
+  the group does not change the pins: Build Cage does.
 
 ID property arrays are stored compactly and read back through the buffer
 protocol, so a 100k-tet cage costs milliseconds to store and load. Reads copy:
@@ -40,6 +45,8 @@ EMBED_WEIGHTS_KEY = "nerf_deform_embed_weights"
 EMBED_COUNT_KEY = "nerf_deform_embed_vertex_count"
 CAGE_CONTENT_KEY = "nerf_deform_cage_key"
 EMBED_CONTENT_KEY = "nerf_deform_embed_key"
+CUT_PINS_KEY = "nerf_deform_cut_pins"
+CUT_PIN_GROUP = "NeRF Cut Pin"
 _computed_keys: dict[tuple, str] = {}  # keys of data stored without one, by (datablock, property)
 
 
@@ -107,6 +114,37 @@ def load_cage(cage_mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
             "its vertices were added or deleted in Edit Mode; rebuild the cage (Build Cage)"
         )
     return rest, tets
+
+
+def store_cut_pins(cage_object: bpy.types.Object, pins: np.ndarray) -> None:
+    """Record the cage vertices pinned at the cut (after `store_cage`): the ID property and the
+    vertex group CUT_PIN_GROUP; none pinned: both removed."""
+    mesh = cage_object.data
+    pins = np.unique(np.asarray(pins, dtype=np.int64).ravel())
+    if len(pins) and (pins[0] < 0 or pins[-1] >= len(mesh.vertices)):
+        raise CageDataError(f"pinned cage vertices index outside 0..{len(mesh.vertices) - 1}")
+    if (group := cage_object.vertex_groups.get(CUT_PIN_GROUP)) is not None:
+        cage_object.vertex_groups.remove(group)
+    if not len(pins):
+        if CUT_PINS_KEY in mesh:
+            del mesh[CUT_PINS_KEY]
+        return
+    _set_property(mesh, CUT_PINS_KEY, pins.astype(np.int32))
+    cage_object.vertex_groups.new(name=CUT_PIN_GROUP).add(pins.tolist(), 1.0, "REPLACE")
+
+
+def cage_pins(cage_object: bpy.types.Object) -> np.ndarray:
+    """Indices (int64, sorted) of the cage vertices pinned at the cut; empty when none are."""
+    mesh = cage_object.data
+    if CUT_PINS_KEY not in mesh:
+        return np.zeros(0, dtype=np.int64)
+    pins = np.array(mesh[CUT_PINS_KEY], dtype=np.int64)  # copies (module docstring)
+    if len(pins) and (pins.min() < 0 or pins.max() >= len(mesh.vertices)):
+        raise CageDataError(
+            f"cage mesh '{mesh.name}' has {len(mesh.vertices)} vertices but its pins at the cut index up to {pins.max()}: "
+            "rebuild the cage (Build Cage)"
+        )
+    return pins
 
 
 def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:

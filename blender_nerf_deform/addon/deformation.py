@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 
 from ..engine.service.protocol import content_key
-from .cage_store import deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
+from .cage_store import cage_pins, deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
 from .handles import group_vertices, handle_target
 from .properties import PIN_GROUP, handles_of
 
@@ -34,8 +34,8 @@ def handle_pose(nerf, depsgraph) -> tuple[dict, dict] | None:
     """`nerf`'s handles at this frame as (pose params, shared content), or None without a handle.
 
     The pose params (mode, one 4x4 transform per handle in the NeRF's frame, their names) are
-    all that changes from frame to frame; the cage, the surface's embedding and the handles'
-    regions travel as shared content, by key (sent to a worker once).
+    all that changes from frame to frame; the cage, the surface's embedding, the handles'
+    regions and the cage's pins at the cut travel as shared content, by key (sent to a worker once).
     """
     s = nerf.nerf_deform
     handles = handles_of(nerf)
@@ -47,6 +47,9 @@ def handle_pose(nerf, depsgraph) -> tuple[dict, dict] | None:
         "handle_index": np.concatenate(regions) if regions else np.zeros(0, np.int64),
         "handle_counts": np.array([len(r) for r in regions], dtype=np.int64),
         "pin_index": region_vertices(surface, PIN_GROUP),
+        # Cage vertices pinned where the edit region cut the scene: ARAP keeps them at rest (a
+        # handle's region wins over them); in Affine Regions only the handles' regions move anyway.
+        "cage_pin_index": cage_pins(s.cage),
     }
     pose = {
         "mode": s.deformation_mode,

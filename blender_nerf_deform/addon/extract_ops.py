@@ -1,4 +1,11 @@
-"""Extract Mesh: the NeRF's filtered surface as a mesh object with the NeRF's colours."""
+"""Extract Mesh: the NeRF's filtered surface as a mesh object with the NeRF's colours.
+
+With an edit region (region_ops.py) only what lies inside it is extracted, and
+with "Pick at 3D Cursor" only the part connected to the cursor. Where the
+region (or the NeRF's box) cuts the scene the surface is closed, and those
+vertices are flagged in the BOOLEAN point attribute "NeRF Cut" (Build Cage pins
+the cage there). The region used is recorded on the mesh.
+"""
 
 from __future__ import annotations
 
@@ -9,10 +16,35 @@ from .cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY, EMBE
                          set_triangles)
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
-from .properties import alive, alive_object, forget_deleted, handles_of, owning_nerf
+from .properties import alive, alive_object, forget_deleted, handles_of, owning_nerf, to_nerf_frame
+from .region_ops import SURFACE_REGION_KEY, edit_region_of, encode_region
 from .frame_render import srgb_to_linear
 
 COLOR_ATTRIBUTE = "NeRF Color"
+CUT_ATTRIBUTE = "NeRF Cut"
+
+
+def set_cut_flags(mesh: bpy.types.Mesh, cut: np.ndarray | None) -> None:
+    """The cut flags (one per vertex) as the BOOLEAN point attribute CUT_ATTRIBUTE; none: removed."""
+    if (old := mesh.attributes.get(CUT_ATTRIBUTE)) is not None:
+        mesh.attributes.remove(old)
+    if cut is None:
+        return
+    cut = np.asarray(cut).astype(bool)
+    if cut.shape != (len(mesh.vertices),):
+        raise ValueError(f"{len(cut)} cut flags for a mesh of {len(mesh.vertices)} vertices")
+    mesh.attributes.new(CUT_ATTRIBUTE, "BOOLEAN", "POINT").data.foreach_set("value", cut)
+
+
+def cut_flags(mesh: bpy.types.Mesh) -> np.ndarray | None:
+    """The mesh's cut flags (bool per vertex), or None when it has none (made elsewhere, or by an
+    older version) or its attribute is not one flag per vertex."""
+    attribute = mesh.attributes.get(CUT_ATTRIBUTE)
+    if attribute is None or attribute.domain != "POINT" or attribute.data_type != "BOOLEAN":
+        return None
+    flags = np.zeros(len(mesh.vertices), dtype=bool)
+    attribute.data.foreach_get("value", flags)
+    return flags
 
 
 def fill_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
@@ -60,8 +92,14 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
             )
         if (surface := alive(s.surface)) is not None and surface.mode == "EDIT":
             raise ValueError(f"leave Edit Mode on {surface.name} first")
-        self._nerf = nerf
+        context.view_layer.update()  # the region and the cursor as a script just placed them
+        region = edit_region_of(nerf)  # ValueError naming a region without a box
+        self._nerf, self._region = nerf, region
         params = {"checkpoint": checkpoint_path(nerf), "threshold": s.threshold, "resolution": s.resolution, "min_volume": s.min_volume}
+        if region is not None:
+            params["region"] = region
+        if s.pick_object:
+            params["pick"] = list(to_nerf_frame(nerf) @ context.scene.cursor.location)
         return "extract", params, None
 
     def apply(self, context, result, arrays):
@@ -83,6 +121,8 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
             surface.hide_render = True  # the NeRF renders itself; the mesh is the artist's proxy
             s.surface = surface
         fill_mesh(surface.data, arrays["vertices"], arrays["faces"], arrays["colors"])
+        set_cut_flags(surface.data, arrays.get("cut"))
+        surface.data[SURFACE_REGION_KEY] = encode_region(self._region)
         for line in result["report"].splitlines():
             self.report({"INFO"}, f"{surface.name}: {line}")
         return {"FINISHED"}

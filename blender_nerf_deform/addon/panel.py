@@ -2,7 +2,7 @@
 
 import bpy
 
-from .properties import handles_of, owning_nerf
+from .properties import alive, handles_of, owning_nerf
 
 
 class NERFDEFORM_PT_main(bpy.types.Panel):
@@ -22,6 +22,19 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         s = nerf.nerf_deform
         layout.label(text=nerf.name, icon="OUTLINER_OB_EMPTY")
         layout.prop(s, "checkpoint")
+        box = layout.box()
+        box.label(text="Edit Region")
+        region = alive(s.edit_region)
+        row = box.row(align=True)
+        if region is None:
+            row.operator("nerf_deform.add_edit_region", icon="CUBE")
+            row.label(text="(none: the whole box)")
+        else:
+            row.operator("nerf_deform.add_edit_region", text=f"Select {region.name}", icon="RESTRICT_SELECT_OFF")
+        col = box.column(align=True)
+        col.prop(s, "pick_object")
+        col.prop(s, "pin_cut")
+
         box = layout.box()
         box.label(text="Mesh and Cage")
         col = box.column(align=True)

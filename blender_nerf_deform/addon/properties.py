@@ -6,11 +6,13 @@ transforms, so their local coordinates are the NeRF's world frame (the frame
 of its transforms.json and of every engine array). Handles are Empties whose
 region is a vertex group of the surface mesh; a handle's pose is its matrix in
 the NeRF's frame, compared with the rest matrix recorded when it was made, so
-parenting a handle to a bone, constraints and drivers all just work.
+parenting a handle to a bone, constraints and drivers all just work. The edit
+region is a cube Empty parented to the NeRF (region_ops.py): the box that
+limits extraction and the cage.
 
 A deleted part is gone. Deleting an object in the viewport or the outliner
-only unlinks it from its collections; our pointers (the NeRF's `surface` and
-`cage`, a handle's `nerf`) would keep it alive in the file, rendering and
+only unlinks it from its collections; our pointers (the NeRF's `surface`,
+`cage` and `edit_region`, a handle's or region's `nerf`) would keep it alive in the file, rendering and
 blocking Extract Mesh while no one sees it. An object in no collection counts
 as deleted: every reader here skips it, and `forget_deleted` (run after
 every change of collections, on load, undo, redo and save) clears the pointers
@@ -19,7 +21,7 @@ to it, so it is not saved either.
 
 import bpy
 from bpy.app.handlers import persistent
-from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
 
 from .cage_store import CageDataError
 
@@ -29,6 +31,7 @@ ROLES = (
     ("SURFACE", "Surface", "Mesh extracted from the NeRF; the proxy for selections and the live preview"),
     ("CAGE", "Cage", "Tetrahedral cage of the NeRF, built once; modifiers on it can drive the deformation"),
     ("HANDLE", "Handle", "An Empty that moves a region of the surface"),
+    ("REGION", "Edit Region", "A box Empty that limits extraction and the cage to the object being edited"),
 )
 
 DEFORMATION_MODES = (
@@ -66,9 +69,22 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
         min=0.0,
         description="Connected pieces smaller than this are dropped as floaters (0: automatic)",
     )
+    edit_region: PointerProperty(
+        name="Edit Region", type=bpy.types.Object, poll=lambda _self, obj: obj.type == "EMPTY",
+        description="Box Empty that limits extraction and the cage to the object being edited (none: the whole box)",
+    )
+    pick_object: BoolProperty(
+        name="Pick at 3D Cursor", default=False,
+        description="Extract only the part of the NeRF connected to the 3D cursor (put the cursor on the object)",
+    )
+    pin_cut: BoolProperty(
+        name="Pin Cut", default=True,
+        description="The cage is pinned where the edit region cut the scene, so the object stays attached; "
+                    "off lets the cut move with the rest",
+    )
 
-    # On handles.
-    nerf: PointerProperty(name="NeRF", type=bpy.types.Object, description="The NeRF this handle deforms")
+    # On handles and edit regions.
+    nerf: PointerProperty(name="NeRF", type=bpy.types.Object, description="The NeRF this handle deforms or this region limits")
     region: StringProperty(name="Region", description="Vertex group of the surface mesh this handle moves")
     rest_matrix: FloatVectorProperty(name="Rest Matrix", size=16, default=IDENTITY, description="Handle's matrix in the NeRF's frame when made (row-major)")
 
@@ -117,14 +133,14 @@ def to_nerf_frame(nerf: bpy.types.Object, matrix_world=None):
 
 
 def owning_nerf(obj: bpy.types.Object | None) -> bpy.types.Object | None:
-    """The NeRF object `obj` belongs to (itself, its parent for surface/cage, its owner for handles);
+    """The NeRF object `obj` belongs to (itself, its parent for surface/cage, its owner for handles and regions);
     None for a deleted object or one whose NeRF was deleted."""
     if obj is None or is_deleted(obj):
         return None
     s = obj.nerf_deform
     if s.role == "NERF":
         return obj
-    if s.role == "HANDLE":
+    if s.role in ("HANDLE", "REGION"):
         return alive(s.nerf)
     if s.role in ("SURFACE", "CAGE"):
         parent = obj.parent
@@ -162,9 +178,9 @@ def forget_deleted() -> int:
     cleared = 0
     for obj in bpy.data.objects:
         s = obj.nerf_deform
-        if obj.library is not None or s.role not in ("NERF", "HANDLE"):
+        if obj.library is not None or s.role not in ("NERF", "HANDLE", "REGION"):
             continue
-        for name in ("surface", "cage") if s.role == "NERF" else ("nerf",):
+        for name in ("surface", "cage", "edit_region") if s.role == "NERF" else ("nerf",):
             if is_deleted(getattr(s, name)):
                 setattr(s, name, None)
                 cleared += 1

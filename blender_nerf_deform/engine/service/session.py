@@ -22,8 +22,11 @@ from .registry import Job, Missing
 SLOTS = {
     "cage": {"vertices": ((-1, 3), "f"), "tets": ((-1, 4), "i")},
     "embedding": {"tet_ids": ((-1,), "i"), "weights": ((-1, 4), "f")},
-    "regions": {"handle_index": ((-1,), "i"), "handle_counts": ((-1,), "i"), "pin_index": ((-1,), "i")},
+    "regions": {"handle_index": ((-1,), "i"), "handle_counts": ((-1,), "i"), "pin_index": ((-1,), "i"),
+                "cage_pin_index": ((-1,), "i")},
 }
+# Arrays a slot may go without: cage vertices pinned at an edit region's cut (none without a cut).
+OPTIONAL = {"regions": {"cage_pin_index"}}
 KEEP = 4  # entries per slot, and per kind of derived object
 
 
@@ -43,7 +46,7 @@ def _checked(slot: str, name: str, array: np.ndarray) -> np.ndarray:
 
 def _validate(slot: str, arrays: dict) -> dict:
     out = {name: _checked(slot, name, arrays[name]) for name in SLOTS[slot] if name in arrays}
-    missing = sorted(set(SLOTS[slot]) - set(out))
+    missing = sorted(set(SLOTS[slot]) - set(out) - OPTIONAL.get(slot, set()))
     if missing:
         raise EngineError(f"{slot} sent without {', '.join(missing)}")
     if slot == "cage":
