@@ -24,3 +24,4 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from fixtures.trained import sphere_nerf  # noqa: E402,F401  (a small trained NeRF, session-scoped)
+from fixtures.floor_data import floor_nerf  # noqa: E402,F401  (a statue on a floor, rendered by Blender, trained)
