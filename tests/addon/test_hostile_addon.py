@@ -99,7 +99,7 @@ surface = nerf.nerf_deform.surface
 bpy.context.view_layer.objects.active = nerf
 assert bpy.ops.nerf_deform.build_cage() == {{"FINISHED"}}
 co = surface_co(surface)
-select(surface, np.flatnonzero(co[:, 2] > 0.5))
+select(surface, np.flatnonzero(co[:, 2] > co[:, 2].min() + 0.75 * np.ptp(co[:, 2])))
 assert bpy.ops.nerf_deform.add_handle() == {{"FINISHED"}}
 bpy.context.active_object.location.z += 0.2
 select(surface, np.flatnonzero(co[:, 2] < -0.5))
@@ -154,7 +154,7 @@ for k in (1, 2):
     record(f"build cage {{k}}", bpy.ops.nerf_deform.build_cage)
 co = surface_co(surface)
 for k in (1, 2):
-    select(surface, np.flatnonzero(co[:, 2] > 0.5))
+    select(surface, np.flatnonzero(co[:, 2] > co[:, 2].min() + 0.75 * np.ptp(co[:, 2])))
     record(f"add handle {{k}}", bpy.ops.nerf_deform.add_handle)
 first("HANDLE").location.z += 0.2
 for k in (1, 2):
