@@ -32,8 +32,9 @@ def main(args) -> int:
 
     def build_one(V, F, index=None):
         name = f"mesh {args.mesh}" + (f" (edit region {index + 1})" if index is not None else "")
+        own_cut = cut if cut is None or index is None else cut[part == index]
         return build_nerf_cage(V, F, nerf, args.margin, args.threshold, edge_length=args.edge_length,
-                               target_tets=args.target_tets, name=name)
+                               target_tets=args.target_tets, name=name, cut=own_cut)
 
     aabb = nerf.aabb.detach().cpu().double().numpy().reshape(2, 3)
     extra = {}

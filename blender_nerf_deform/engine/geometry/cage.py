@@ -290,13 +290,15 @@ def cage_clearance(cage_vertices: np.ndarray, tets: np.ndarray, points: np.ndarr
 
 def build_nerf_cage(vertices: np.ndarray, faces: np.ndarray, nerf, margin: float | None = None,
                     threshold: float | None = None, *, edge_length: float | None = None,
-                    target_tets: int | None = None, name: str = "mesh", log=print) -> Cage:
+                    target_tets: int | None = None, name: str = "mesh", log=print, cut: np.ndarray | None = None) -> Cage:
     """The cage of a NeRF's extracted mesh (what `cage` writes and the add-on's Build Cage stores).
 
     The margin (default 3% of the mesh's diagonal) is widened, up to three times by 1.5x,
     while more than 0.5% of the envelope still sees the NeRF's density above a tenth of the
     surface `threshold`: a soft, fuzzy surface needs a wider cage, or its outer shell would
-    stay behind when the cage moves.
+    stay behind when the cage moves. Where an edit region cut the scene (`cut`, per mesh
+    vertex), the envelope beyond the cut lies in the rest of the scene (the floor under a
+    statue): it is dense there whatever the margin, so it is left out of that check.
     """
     from .extract import DEFAULT_THRESHOLD, density_fn_of
 
@@ -310,9 +312,19 @@ def build_nerf_cage(vertices: np.ndarray, faces: np.ndarray, nerf, margin: float
     if not margin > 0:
         raise EngineError(f"cage margin must be positive, got {margin}")
     threshold = threshold if threshold is not None else DEFAULT_THRESHOLD
+    beyond_cut = None
+    if cut is not None and np.any(cut):
+        from scipy.spatial import cKDTree
+
+        to_mesh, to_cut = cKDTree(V), cKDTree(V[np.asarray(cut, dtype=bool)])
     for attempt in range(4):
         ev, _, _ = envelope(V, F, margin)
-        soft = density(ev) > 0.1 * threshold
+        if beyond_cut is not None or (cut is not None and np.any(cut)):
+            # Beyond the cut and around its rim (the cut about as near as the object, as cut_pins
+            # reads it, with a margin's slack): the rest of the scene.
+            beyond_cut = to_cut.query(ev)[0] <= to_mesh.query(ev)[0] + margin
+            ev = ev[~beyond_cut]
+        soft = density(ev) > 0.1 * threshold if len(ev) else np.zeros(1, dtype=bool)
         if soft.mean() <= 0.005 or attempt == 3:
             break
         log(f"cage: {soft.mean():.1%} of the envelope at margin {margin:.4g} still has density > {0.1 * threshold:g}; widening")

@@ -124,10 +124,13 @@ def cage(job: Job) -> tuple[dict, dict]:
         if flags is not None and len(flags) != len(vertices):
             raise EngineError(f"{len(flags)} {name} for a mesh of {len(vertices)} vertices")
 
-    def build_one(V, F, _index=0):
+    _part_vertices = {} if part is None else {int(i): np.flatnonzero(part == i) for i in np.unique(part)}
+
+    def build_one(V, F, _index=None):
         if p.get("checkpoint"):
+            own_cut = None if cut is None else (cut if _index is None else cut[_part_vertices[_index]])
             return build_nerf_cage(V, F, _model(p), p.get("margin"), p.get("threshold"), **size,
-                                   log=lambda line: print(line, file=sys.stderr))
+                                   log=lambda line: print(line, file=sys.stderr), cut=own_cut)
         return build_cage(V, F, p.get("margin"), **size)
 
     several = part is not None and len(np.unique(part)) > 1
