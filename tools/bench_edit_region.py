@@ -166,7 +166,6 @@ def _select_vertices(bpy, surface, indices) -> None:
     for i in indices:
         bm.verts[int(i)].select = True
     bmesh.update_edit_mesh(surface.data)
-    bpy.ops.object.mode_set(mode="OBJECT")
 
 
 def _raster(shape, pinhole, vertices, triangles) -> np.ndarray:
@@ -235,6 +234,9 @@ def blender_part(args, work: Path, region: dict) -> dict:
         bpy.context.view_layer.objects.active = surface
         _ok(bpy.ops.nerf_deform.add_handle(), "Add Handle")
         handle = bpy.context.active_object
+        if surface.mode == "EDIT":
+            bpy.context.view_layer.objects.active = surface
+            bpy.ops.object.mode_set(mode="OBJECT")
 
         ds = load_dataset(args.data, downscale=args.downscale, load_images=False)
         cam = ds.cameras[args.view]
