@@ -4,11 +4,11 @@ Properties, operators, panels and the RenderEngine live here; heavy work is
 sent to the engine in a worker process.
 """
 
-from . import (cage_ops, composite, extract_ops, handles, nerf_ops, panel, preferences, preview, preview_render, properties,
-               region_ops, render_engine, worker_client)
+from . import (cage_ops, composite, extract_ops, handles, nerf_ops, panel, pick_ops, preferences, preview, preview_render,
+               properties, region_ops, render_engine, worker_client)
 
 # composite after panel: its sub-panel hangs under the main NeRF Deform panel.
-_modules = (preferences, properties, nerf_ops, region_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel,
+_modules = (preferences, properties, nerf_ops, region_ops, pick_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel,
             composite)
 
 

@@ -555,3 +555,44 @@ def extract_regions(extract_one, regions: list, pick=None) -> ExtractResult:
         notes=[f"edit region {i + 1}: {line}" for i, r in enumerate(results) for line in r.notes],
         part=np.repeat(np.arange(len(results)), np.diff(offsets)),
     )
+
+
+def first_dense_point(density_fn: DensityFn, origin, direction, bounds, threshold: float = DEFAULT_THRESHOLD,
+                      samples: int = 2048) -> tuple[np.ndarray | None, float, float]:
+    """Where a ray first meets {density > threshold} inside `bounds`: (point or None, distance
+    along the unit ray, largest density seen). What a click on the NeRF in the viewport picks.
+
+    The ray is sampled at `samples` points across the box (slab test), then the crossing is
+    refined by bisection between the last sample below and the first above the threshold."""
+    o = np.asarray(origin, dtype=np.float64).ravel()
+    d = np.asarray(direction, dtype=np.float64).ravel()
+    if o.shape != (3,) or d.shape != (3,) or not (np.isfinite(o).all() and np.isfinite(d).all()):
+        raise EngineError(f"a pick ray needs a finite origin and direction, got {o.tolist()} and {d.tolist()}")
+    n = np.linalg.norm(d)
+    if n < 1e-12:
+        raise EngineError("a pick ray needs a non-zero direction")
+    d = d / n
+    b = _bounds(bounds)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (b[0] - o) / d, (b[1] - o) / d
+    near = np.nanmax(np.where(np.isfinite(np.minimum(t0, t1)), np.minimum(t0, t1), -np.inf))
+    far = np.nanmin(np.where(np.isfinite(np.maximum(t0, t1)), np.maximum(t0, t1), np.inf))
+    near = max(near, 0.0)
+    if not far > near:
+        return None, float("nan"), 0.0
+    t = np.linspace(near, far, samples)
+    dens = np.asarray(density_fn(o + t[:, None] * d), dtype=np.float64)
+    above = np.flatnonzero(dens > threshold)
+    if len(above) == 0:
+        return None, float("nan"), float(dens.max())
+    k = int(above[0])
+    if k == 0:
+        return o + t[0] * d, float(t[0]), float(dens.max())
+    lo, hi = t[k - 1], t[k]
+    for _ in range(20):
+        mid = 0.5 * (lo + hi)
+        if float(np.asarray(density_fn((o + mid * d)[None]))[0]) > threshold:
+            hi = mid
+        else:
+            lo = mid
+    return o + hi * d, float(hi), float(dens.max())

@@ -15,6 +15,8 @@ modification time; cages, embeddings and regions live in the worker session
                                           the rest cage (one per part, in one), the
                                           surface's embedding in it, the cage vertices
                                           pinned at the regions' cuts
+    first_surface  checkpoint, origin, direction [threshold]
+                                          where a ray first meets the density (a click's pick)
     solve    shared cage/embedding/regions, mode, transforms, answer
                                           a pose: deformed cage vertices, or (answer
                                           "surface") the deformed surface for the preview
@@ -37,7 +39,7 @@ from ..errors import EngineError
 from ..geometry.cage import build_cage, build_nerf_cage, build_part_cages, cut_pins, part_cut_pins
 from ..geometry.deform import RegionDeformer, split_regions
 from ..geometry.embedding import Embedding, embed_points, embed_points_by_part
-from ..geometry.extract import extract_nerf_mesh, extract_nerf_regions
+from ..geometry.extract import density_fn_of, extract_nerf_mesh, extract_nerf_regions, first_dense_point
 from ..geometry.region import region_from_dict
 from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
@@ -108,6 +110,21 @@ def extract(job: Job) -> tuple[dict, dict]:
                "n_cut": int(res.cut.sum()), "n_parts": int(part.max()) + 1 if len(part) else 0}
     return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32),
                      "cut": res.cut.astype(np.uint8), "part": part.astype(np.int32)}
+
+
+@op("first_surface")
+def first_surface(job: Job) -> dict:
+    """Where a ray (NeRF frame) first meets the NeRF's density above the threshold, in its box:
+    what a click on the NeRF picks (the 3D cursor put on the object)."""
+    p = job.params
+    model = _model(p)
+    threshold = float(p.get("threshold", 10.0))
+    box = model.aabb.detach().cpu().double().numpy().reshape(2, 3)
+    point, distance, densest = first_dense_point(density_fn_of(model), p.get("origin"), p.get("direction"), box, threshold)
+    if point is None:
+        return {"hit": False, "max_density": densest, "threshold": threshold}
+    return {"hit": True, "point": [float(x) for x in point], "distance": distance, "max_density": densest,
+            "threshold": threshold}
 
 
 @op("cage")
