@@ -5,11 +5,11 @@ sent to the engine in a worker process.
 """
 
 from . import (cage_ops, composite, extract_ops, handles, nerf_ops, panel, pick_ops, preferences, preview, preview_render,
-               properties, region_ops, render_engine, worker_client)
+               properties, region_ops, render_engine, train_ops, worker_client)
 
 # composite after panel: its sub-panel hangs under the main NeRF Deform panel.
 _modules = (preferences, properties, nerf_ops, region_ops, pick_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel,
-            composite)
+            composite, train_ops)
 
 
 def register():

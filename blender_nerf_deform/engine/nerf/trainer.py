@@ -368,8 +368,10 @@ def check_budget(steps=None, max_seconds=None, seed: int = 0, checkpoint_every: 
 
 def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
                  checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
-                 seed: int = 0, overwrite: bool = False, scene_model: str = "auto", drop_blurry: float = 0.0) -> dict:
+                 seed: int = 0, overwrite: bool = False, scene_model: str = "auto", drop_blurry: float = 0.0,
+                 callback=None) -> dict:
     """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
+    `callback(trainer)` runs after every step (the worker reports progress from it).
 
     `seed` seeds the initial weights as well as the trainer's sampling, so that a run of a fixed
     number of steps on the CPU repeats on the same machine (a time budget cannot: it depends on
@@ -398,7 +400,7 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
     try:
         with folder_lock(out, LOCK_NAME, holder="another train process"):
             return _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every,
-                                 progress, config_overrides, should_stop, seed, scene_model)
+                                 progress, config_overrides, should_stop, seed, scene_model, callback)
     except EngineError:
         if created:
             try:
@@ -415,7 +417,7 @@ def _check_replace(ckpt: Path, resume: bool, overwrite: bool) -> None:
 
 
 def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every, progress,
-                  config_overrides, should_stop, seed, scene_model="auto") -> dict:
+                  config_overrides, should_stop, seed, scene_model="auto", callback=None) -> dict:
     _check_replace(ckpt, resume, overwrite)  # again: another process may have finished here meanwhile
     # A process killed while writing left its temporary files; with the lock held none is in use.
     for name in (ckpt, out / "train.json"):
@@ -437,7 +439,7 @@ def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, che
         trainer.load_state_dict(state, where=str(ckpt))
         trainer.elapsed = 0.0  # --max-seconds counts this run
     t0 = time.perf_counter()
-    summary = trainer.train(progress=progress, should_stop=should_stop)
+    summary = trainer.train(progress=progress, should_stop=should_stop, callback=callback)
     summary.update({"checkpoint": str(ckpt), "device": str(dev), "wall_seconds": time.perf_counter() - t0,
                     "images": len(ds), "width": ds.width, "height": ds.height})
     text = json.dumps(summary, indent=1).encode()

@@ -15,6 +15,9 @@ modification time; cages, embeddings and regions live in the worker session
                                           the rest cage (one per part, in one), the
                                           surface's embedding in it, the cage vertices
                                           pinned at the regions' cuts
+    train    data, out [steps, max_seconds, device, downscale, resume, overwrite, scene]
+                                          a NeRF trained into out/nerf.ckpt, with progress;
+                                          cancelling keeps the checkpoint
     first_surface  checkpoint, origin, direction [threshold]
                                           where a ray first meets the density (a click's pick)
     solve    shared cage/embedding/regions, mode, transforms, answer
@@ -110,6 +113,51 @@ def extract(job: Job) -> tuple[dict, dict]:
                "n_cut": int(res.cut.sum()), "n_parts": int(part.max()) + 1 if len(part) else 0}
     return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32),
                      "cut": res.cut.astype(np.uint8), "part": part.astype(np.int32)}
+
+
+PROGRESS_EVERY_S = 0.5
+
+
+@op("train")
+def train(job: Job) -> dict:
+    """Train a NeRF on a dataset folder (every format `train` reads) into a run folder, as the
+    `train` command does, with progress (steps, batch PSNR, elapsed, an estimate of what is left).
+    Cancelling stops after the current step and still writes the checkpoint (the result says
+    `cancelled`); `resume` continues a run folder's checkpoint."""
+    import time
+
+    from ..nerf.trainer import run_training
+
+    p = job.params
+    for key in ("data", "out"):
+        if not isinstance(p.get(key), str) or not p[key]:
+            raise EngineError(f"train needs `{key}`, a folder path")
+    steps, seconds = p.get("steps"), p.get("max_seconds")
+    last = [0.0]
+
+    def report(trainer):
+        now = time.perf_counter()
+        if now - last[0] < PROGRESS_EVERY_S:
+            return
+        last[0] = now
+        done, elapsed = trainer.step_count, trainer.elapsed
+        if steps:
+            fraction = done / steps
+        else:
+            fraction = elapsed / seconds if seconds else 0.0
+        fraction = min(max(fraction, 0.0), 1.0)
+        left = (elapsed / fraction - elapsed) if fraction > 0 else float("nan")
+        psnr = trainer.last.get("psnr", float("nan")) if trainer.last else float("nan")
+        message = (f"step {done}, PSNR {psnr:.1f} dB, {elapsed:.0f} s" +
+                   (f", about {left:.0f} s left" if left == left else ""))
+        job.worker.send({"type": "progress", "id": job.id, "fraction": fraction, "message": message})
+
+    summary = run_training(p["data"], p["out"], max_seconds=seconds, steps=steps, device=p.get("device", "auto"),
+                           downscale=int(p.get("downscale", 1)), resume=bool(p.get("resume")),
+                           overwrite=bool(p.get("overwrite")), progress=False, callback=report,
+                           should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"))
+    keep = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height")
+    return {**{k: summary[k] for k in keep if k in summary}, "cancelled": job.cancel_event.is_set()}
 
 
 @op("first_surface")

@@ -1,0 +1,105 @@
+"""Train NeRF from Blender: the worker trains (progress, cancel keeps the checkpoint, resume
+continues), then the NeRF object appears. Real worker, the analytic sphere's small dataset."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fixtures import REPO
+from fixtures.sphere_data import write_sphere_dataset
+
+
+def _eval_psnr(ckpt, data) -> float:
+    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "eval", "--nerf", str(ckpt), "--data",
+                           str(data)], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return float(re.findall(r"([0-9.]+) dB", proc.stdout + proc.stderr)[-1])
+
+
+def _constant_colour_psnr(data) -> float:
+    """PSNR of the best constant image (the mean colour on white) against the dataset's images."""
+    meta = json.loads((data / "transforms.json").read_text())
+    imgs = []
+    for frame in meta["frames"]:
+        rgba = np.asarray(Image.open(data / frame["file_path"]).convert("RGBA"), dtype=np.float64) / 255
+        imgs.append(rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]))
+    imgs = np.stack(imgs)
+    return float(-10 * np.log10(np.mean((imgs - imgs.mean(axis=(0, 1, 2))) ** 2)))
+
+
+@pytest.mark.slow
+def test_train_nerf_shows_progress_and_ends_with_a_nerf_object(addon, tmp_path, capfd):
+    bpy = addon
+    data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)
+    assert not [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
+    assert bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(tmp_path / "run"), steps=150, seconds=0,
+                                          device="cpu") == {"FINISHED"}
+    printed = capfd.readouterr().out
+    progress = re.findall(r"Train NeRF: +([0-9.]+)% step (\d+), PSNR", printed)
+    assert len(progress) >= 2, printed[-2000:]  # several reports, advancing
+    assert float(progress[-1][0]) > float(progress[0][0]) and int(progress[-1][1]) > int(progress[0][1])
+    nerfs = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
+    assert len(nerfs) == 1
+    ckpt = tmp_path / "run" / "nerf.ckpt"
+    assert ckpt.is_file() and bpy.path.abspath(nerfs[0].nerf_deform.checkpoint) == str(ckpt)
+    # It learnt the sphere: better than the best constant colour.
+    assert _eval_psnr(ckpt, data) > _constant_colour_psnr(data) + 3.0
+    # Training again into the same folder without Resume is refused; nothing is touched.
+    stamp = ckpt.stat().st_mtime_ns
+    with pytest.raises(RuntimeError, match="already holds a NeRF: tick Resume"):
+        bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(tmp_path / "run"), steps=10, seconds=0)
+    assert ckpt.stat().st_mtime_ns == stamp
+
+
+@pytest.mark.slow
+def test_cancel_keeps_a_loadable_checkpoint_and_resume_continues_it(addon, tmp_path):
+    bpy = addon
+    from blender_nerf_deform.addon import jobs
+
+    data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)
+    run = tmp_path / "run"
+    client = jobs.worker(bpy.context)
+    state = {"progress": [], "done": None}
+    job = client.submit("train", {"data": str(data), "out": str(run), "steps": 100000, "device": "cpu"},
+                        on_progress=lambda f, msg: state["progress"].append(msg),
+                        on_done=lambda result, arrays: state.update(done=result),
+                        on_error=lambda error: state.update(done=error))
+    deadline = time.time() + 300
+    while not state["progress"] and time.time() < deadline:
+        client.drain()
+        time.sleep(0.05)
+    assert state["progress"], "no progress from the training worker"
+    client.cancel(job)
+    while state["done"] is None and time.time() < deadline:
+        client.drain()
+        time.sleep(0.05)
+    result = state["done"]
+    assert isinstance(result, dict) and result["cancelled"], result
+    steps_done = result["steps"]
+    assert 0 < steps_done < 100000 and (run / "nerf.ckpt").is_file()
+    # Loadable, and Resume continues from it: the step count goes on.
+    assert bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(run), steps=steps_done + 40, seconds=0,
+                                          resume=True, device="cpu") == {"FINISHED"}
+    summary = json.loads((run / "train.json").read_text())
+    assert summary["steps"] == steps_done + 40
+
+
+def test_train_nerf_bad_input_is_reported(addon, tmp_path):
+    bpy = addon
+    with pytest.raises(RuntimeError, match="does not exist: pick the folder of a dataset"):
+        bpy.ops.nerf_deform.train_nerf(data=str(tmp_path / "nowhere"))
+    with pytest.raises(RuntimeError, match="give a time budget or a number of steps"):
+        bpy.ops.nerf_deform.train_nerf(data=str(tmp_path), seconds=0, steps=0)
+    (tmp_path / "junk").mkdir()
+    with pytest.raises(RuntimeError, match="junk"):  # the engine names what it could not read
+        bpy.ops.nerf_deform.train_nerf(data=str(tmp_path / "junk"), run_folder=str(tmp_path / "run"), steps=5, seconds=0)
+    assert not (tmp_path / "run").exists()
+    assert not [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
