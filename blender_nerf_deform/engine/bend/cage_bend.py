@@ -42,7 +42,8 @@ import torch
 
 from .. import backend
 from ..errors import EngineError
-from ..geometry.barycentric import deformed_to_rest_affines, inversion_report, tet_inverses, tet_matrices
+from ..geometry.barycentric import (deformed_to_rest_affines, inversion_from_det, inversion_report, tet_inverses,
+                                   tet_matrices)
 from ..geometry.locate import TetLocator
 from ..nerf.occupancy import OccupancyGrid
 from . import bend_kernels
@@ -76,23 +77,52 @@ class CageBend:
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None
         self._rest_inverse = tet_inverses(self.rest_vertices, self.tets)
+        # What every pose's affines start from (bend_kernels.pose_tets): the rest tets' edge matrices.
+        corners = self.rest_vertices[self.tets]
+        self._rest_first = np.ascontiguousarray(corners[:, 0])
+        self._rest_edges = np.ascontiguousarray((corners[:, 1:] - corners[:, :1]).transpose(0, 2, 1))
+        self._rest_edges_inv = np.ascontiguousarray(self._rest_inverse[:, 1:, :3])
+        self._rest_det = np.linalg.det(self._rest_edges)
         self._locate_rest_cells()
 
     @property
     def use_kernels(self) -> bool:
         return backend.use_kernels(self.device)
 
+    def _pose_tets(self, deformed: np.ndarray):
+        """(deformed→rest affines (M,4,4), rotations (M,3,3) or None, rest→deformed affines (M,3,4),
+        InversionReport) of one pose: the fused kernel on CPU, numpy elsewhere."""
+        if self.use_kernels:
+            m = len(self.tets)
+            linear, offset, rotation = np.empty((m, 3, 3)), np.empty((m, 3)), np.empty((m, 3, 3))
+            forward, det_f, needs_svd = np.empty((m, 3, 4)), np.empty(m), np.empty(m, dtype=np.bool_)
+            bend_kernels.pose_tets(self._rest_edges, self._rest_edges_inv, self._rest_first, self._rest_det,
+                                   np.ascontiguousarray(deformed), self.tets, linear, offset, rotation, forward, det_f,
+                                   needs_svd)
+            affine = np.zeros((m, 4, 4))
+            affine[:, :3, :3], affine[:, :3, 3], affine[:, 3, 3] = linear, offset, 1.0
+            if needs_svd.any():  # inverted tets: the closest proper rotation, by SVD
+                rotation[needs_svd] = polar_rotations(linear[needs_svd])
+            inversion = inversion_from_det(det_f)
+            return affine, rotation, forward, inversion
+        inversion = inversion_report(self.rest_vertices, deformed, self.tets)
+        affine = deformed_to_rest_affines(self.rest_vertices, deformed, self.tets)
+        forward = (tet_matrices(deformed, self.tets) @ self._rest_inverse)[:, :3, :]
+        return affine, None, forward, inversion
+
     def set_deformed(self, deformed_vertices) -> "CageBend":
         """Prepare the map for one pose (same vertex order and tets as the rest cage)."""
         deformed = np.asarray(deformed_vertices, dtype=np.float64)
-        self.inversion = inversion_report(self.rest_vertices, deformed, self.tets)
-        affine = deformed_to_rest_affines(self.rest_vertices, deformed, self.tets)
+        affine, rotation, forward, self.inversion = self._pose_tets(deformed)
         bad = np.unique(np.r_[self.inversion.degenerate, np.flatnonzero(~np.isfinite(affine).all(axis=(1, 2)))])
         if len(bad):
             affine[bad] = 0.0
             affine[bad, :3, 3] = self.rest_vertices[self.tets[bad]].mean(axis=1)
             affine[bad, 3, 3] = 1.0
-        rotation = polar_rotations(affine[:, :3, :3]) if self.rotate_directions else np.tile(np.eye(3), (len(affine), 1, 1))
+        if not self.rotate_directions:
+            rotation = np.tile(np.eye(3), (len(affine), 1, 1))
+        elif rotation is None:
+            rotation = polar_rotations(affine[:, :3, :3])
         rotation[bad] = np.eye(3)
         f32 = dict(dtype=torch.float32, device=self.device)
         self.linear = torch.as_tensor(affine[:, :3, :3], **f32).contiguous()
@@ -106,7 +136,7 @@ class CageBend:
         self.deformed = TetLocator(deformed, self.tets[located], device=self.device)
         self.located_tets = torch.as_tensor(located, dtype=torch.int64, device=self.device)
         self.deformed_bounds = np.stack([deformed.min(0), deformed.max(0)])
-        self.occupancy = self._deformed_occupancy(deformed)
+        self.occupancy = self._deformed_occupancy(deformed, forward)
         return self
 
     @torch.no_grad()
@@ -160,7 +190,7 @@ class CageBend:
         self._rest_lo = box[0].numpy()
         self._rest_cell = cell.numpy()
 
-    def _deformed_occupancy(self, deformed: np.ndarray) -> OccupancyGrid:
+    def _deformed_occupancy(self, deformed: np.ndarray, forward: np.ndarray | None = None) -> OccupancyGrid:
         """Occupancy of deformed space: every occupied cell of the NeRF's grid sent forward (rest → deformed).
 
         The image of a cell is bounded by the box of its 8 corners sent through
@@ -173,7 +203,9 @@ class CageBend:
         Only skipping depends on this grid: each sample's fate is decided by
         `sample_transform`. No point location per frame.
         """
-        forward = (tet_matrices(deformed, self.tets) @ self._rest_inverse)[:, :3, :]
+        if forward is None:
+            forward = (tet_matrices(deformed, self.tets) @ self._rest_inverse)[:, :3, :]
+        forward = np.ascontiguousarray(forward)
         n = len(self._cell_ijk)
         model_box = self.model.aabb.detach().cpu().double().reshape(2, 3).numpy()
         if n == 0:

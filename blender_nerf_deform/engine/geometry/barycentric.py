@@ -115,8 +115,12 @@ def inversion_report(rest_vertices: np.ndarray, deformed_vertices: np.ndarray, t
     lie in two deformed tets); degenerate ones (|det F| <= tol) have no inverse.
     """
     rest_vertices, tets = _as_tets(rest_vertices, tets)
-    det = signed_volumes(deformed_vertices, tets) / signed_volumes(rest_vertices, tets)
-    det = np.nan_to_num(det, nan=0.0, posinf=0.0, neginf=0.0)
+    return inversion_from_det(signed_volumes(deformed_vertices, tets) / signed_volumes(rest_vertices, tets), tol)
+
+
+def inversion_from_det(det: np.ndarray, tol: float = 1e-6) -> InversionReport:
+    """The InversionReport of per-tet det F values (volume ratios deformed / rest, signed)."""
+    det = np.nan_to_num(np.asarray(det, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     return InversionReport(det=det, inverted=np.flatnonzero(det < -tol), degenerate=np.flatnonzero(np.abs(det) <= tol))
 
 
