@@ -1,17 +1,22 @@
-"""Build Cage: the NeRF's tetrahedral cage, built once from its extracted mesh and kept in the .blend."""
+"""Build Cage: the NeRF's tetrahedral cage, built once from its extracted mesh and kept in the .blend.
+
+A mesh extracted in several edit regions has one part per region (its "NeRF Part" attribute):
+the worker builds one cage per part, in the one cage object (no tet joins two parts, so a handle
+on one object moves that object alone), and pins each part at its own cut. The cage's vertices
+get the "NeRF Part" attribute too (which region's object each cage vertex wraps)."""
 
 from __future__ import annotations
 
 import bpy
 import numpy as np
 
-from .cage_store import store_cage, store_cut_pins, store_embedding
-from .extract_ops import cut_flags
+from .cage_store import cage_vertex_parts, store_cage, store_cut_pins, store_embedding
+from .extract_ops import cut_flags, part_labels, set_part_labels
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .preview import PREVIEW_KEY
 from .properties import alive, alive_object, forget_deleted, owning_nerf
-from .region_ops import edit_region_of, extracted_region, same_region
+from .region_ops import edit_regions_of, extracted_regions, same_regions
 
 
 def surface_arrays(surface: bpy.types.Object) -> dict[str, np.ndarray]:
@@ -55,15 +60,22 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
         cut = cut_flags(surface.data)
         if cut is not None and cut.any():
             arrays["cut"] = cut.astype(np.uint8)
+        # One cage per edit region's object (the part each vertex was extracted in).
+        part = part_labels(surface.data)
+        self._part = part
+        if part is not None and len(np.unique(part)) > 1:
+            arrays["part"] = part
         self._note = ""
         context.view_layer.update()
+        extracted = extracted_regions(surface)
         try:
-            changed = not same_region(edit_region_of(nerf), extracted_region(surface))
-        except ValueError:  # the region has no box now
+            changed = not same_regions(edit_regions_of(nerf), extracted)
+        except ValueError:  # a region has no box now
             changed = True
         if changed:
-            self._note = (f"the edit region changed since {surface.name} was extracted: the cage wraps the mesh as "
-                          "extracted (delete the cage and handles, and Extract Mesh again, to use the new region)")
+            self._note = (f"the edit regions changed since {surface.name} was extracted (it was extracted in "
+                          f"{len(extracted) or 'no'} region{'' if len(extracted) == 1 else 's'}): the cage wraps the mesh "
+                          "as extracted (delete the cage and handles, and Extract Mesh again, to use the regions now)")
         # With the checkpoint and the extraction threshold the worker widens the margin where the
         # NeRF's density is still soft, as the `cage` command does (one stage function for both).
         # (A NeRF object without a checkpoint, made by a script, gets the cage at the plain margin.)
@@ -93,7 +105,12 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
             s.cage = cage
         store_cage(cage.data, arrays["vertices"], arrays["tets"])
         store_embedding(surface.data, arrays["tet_ids"], arrays["weights"])
-        store_cut_pins(cage, arrays.get("pinned_vertices", np.zeros(0, np.int64)))
+        pins = np.asarray(arrays.get("pinned_vertices", np.zeros(0, np.int64)), dtype=np.int64)
+        store_cut_pins(cage, pins)
+        cage_part = None
+        if self._part is not None and len(self._part) == len(surface.data.vertices):
+            cage_part = cage_vertex_parts(len(arrays["vertices"]), arrays["tets"], arrays["tet_ids"], self._part)
+        set_part_labels(cage.data, cage_part)
         # A rebuilt cage starts undeformed: drop the previous preview.
         keys = surface.data.shape_keys
         if keys is not None and (key := keys.key_blocks.get(PREVIEW_KEY)) is not None:
@@ -104,7 +121,11 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
             f"(clearance {result['clearance']:.3g})",
         )
         n_cut, n_pinned = result.get("n_cut", 0), result.get("n_pinned", 0)
-        if n_pinned:
+        if n_pinned and cage_part is not None and len(np.unique(cage_part)) > 1:
+            per_part = ", ".join(f"{int(np.count_nonzero(cage_part[pins] == i))} in part {i + 1}" for i in np.unique(cage_part))
+            self.report({"INFO"}, f"{cage.name}: one cage per edit region ({len(np.unique(cage_part))}); {n_pinned} cage "
+                                  f"vertices pinned at the cuts ({per_part}; {n_cut} cut mesh vertices)")
+        elif n_pinned:
             self.report({"INFO"}, f"{cage.name}: {n_pinned} cage vertices pinned at the cut ({n_cut} cut mesh vertices)")
         elif n_cut and not s.pin_cut:
             self.report({"INFO"}, f"{cage.name}: Pin Cut is off: the cut ({n_cut} mesh vertices) moves with the cage")

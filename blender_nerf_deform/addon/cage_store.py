@@ -133,6 +133,38 @@ def store_cut_pins(cage_object: bpy.types.Object, pins: np.ndarray) -> None:
     cage_object.vertex_groups.new(name=CUT_PIN_GROUP).add(pins.tolist(), 1.0, "REPLACE")
 
 
+def cage_vertex_parts(n_vertices: int, tets: np.ndarray, tet_ids: np.ndarray, surface_part: np.ndarray) -> np.ndarray:
+    """The part (edit region) of each cage vertex of a cage built per part (no tet joins two parts):
+    each connected piece of the tets takes the part of the surface vertices embedded in it (the
+    most common one); a piece holding none takes its lower neighbour's in index order (the engine
+    concatenates the parts' cages in part order); -1 when no piece holds a surface vertex."""
+    tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    labels = np.arange(n_vertices, dtype=np.int64)
+    while len(tets):  # connected pieces: hook each tet's roots to its smallest label, then jump
+        low = labels[tets].min(axis=1)
+        new = labels.copy()
+        np.minimum.at(new, labels[tets].ravel(), np.repeat(low, 4))
+        np.minimum.at(new, tets.ravel(), np.repeat(low, 4))
+        while not np.array_equal(new, new[new]):
+            new = new[new]
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    part = np.full(n_vertices, -1, dtype=np.int64)
+    tet_ids, surface_part = np.asarray(tet_ids, dtype=np.int64), np.asarray(surface_part, dtype=np.int64)
+    if not len(tet_ids) or not len(tets):
+        return part
+    pieces = labels[tets[tet_ids, 0]]
+    for piece in np.unique(pieces):
+        values, counts = np.unique(surface_part[pieces == piece], return_counts=True)
+        part[labels == piece] = values[np.argmax(counts)]
+    known = np.flatnonzero(part >= 0)
+    if len(known) < n_vertices:
+        before = np.searchsorted(known, np.arange(n_vertices), side="right") - 1
+        part = np.where(part >= 0, part, part[known[np.maximum(before, 0)]])
+    return part
+
+
 def cage_pins(cage_object: bpy.types.Object) -> np.ndarray:
     """Indices (int64, sorted) of the cage vertices pinned at the cut; empty when none are."""
     mesh = cage_object.data

@@ -1,10 +1,12 @@
 """Extract Mesh: the NeRF's filtered surface as a mesh object with the NeRF's colours.
 
-With an edit region (region_ops.py) only what lies inside it is extracted, and
-with "Pick at 3D Cursor" only the part connected to the cursor. Where the
-region (or the NeRF's box) cuts the scene the surface is closed, and those
-vertices are flagged in the BOOLEAN point attribute "NeRF Cut" (Build Cage pins
-the cage there). The region used is recorded on the mesh.
+With edit regions (region_ops.py) only what lies inside them is extracted, and
+with "Pick at 3D Cursor" only the part connected to the cursor (in the region
+that holds it). Where a region (or the NeRF's box) cuts the scene the surface
+is closed, and those vertices are flagged in the BOOLEAN point attribute
+"NeRF Cut" (Build Cage pins the cage there). Each vertex's region (its index in
+`regions_of` order; 0 without regions) is the INT point attribute "NeRF Part":
+Build Cage builds one cage per part. The regions used are recorded on the mesh.
 """
 
 from __future__ import annotations
@@ -17,22 +19,24 @@ from .cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY, EMBE
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .properties import alive, alive_object, forget_deleted, handles_of, owning_nerf, to_nerf_frame
-from .region_ops import SURFACE_REGION_KEY, edit_region_of, encode_region
+from .region_ops import SURFACE_REGION_KEY, edit_regions_of, encode_regions, regions_of
 from .frame_render import srgb_to_linear
 
 COLOR_ATTRIBUTE = "NeRF Color"
 CUT_ATTRIBUTE = "NeRF Cut"
+PART_ATTRIBUTE = "NeRF Part"
 
 
 def set_cut_flags(mesh: bpy.types.Mesh, cut: np.ndarray | None) -> None:
     """The cut flags (one per vertex) as the BOOLEAN point attribute CUT_ATTRIBUTE; none: removed."""
+    if cut is not None:
+        cut = np.asarray(cut).astype(bool)
+        if cut.shape != (len(mesh.vertices),):
+            raise ValueError(f"{len(cut)} cut flags for a mesh of {len(mesh.vertices)} vertices")
     if (old := mesh.attributes.get(CUT_ATTRIBUTE)) is not None:
         mesh.attributes.remove(old)
     if cut is None:
         return
-    cut = np.asarray(cut).astype(bool)
-    if cut.shape != (len(mesh.vertices),):
-        raise ValueError(f"{len(cut)} cut flags for a mesh of {len(mesh.vertices)} vertices")
     mesh.attributes.new(CUT_ATTRIBUTE, "BOOLEAN", "POINT").data.foreach_set("value", cut)
 
 
@@ -45,6 +49,32 @@ def cut_flags(mesh: bpy.types.Mesh) -> np.ndarray | None:
     flags = np.zeros(len(mesh.vertices), dtype=bool)
     attribute.data.foreach_get("value", flags)
     return flags
+
+
+def set_part_labels(mesh: bpy.types.Mesh, part: np.ndarray | None) -> None:
+    """The part of each vertex (the index of the edit region it was extracted in; also on a cage,
+    the part of each cage vertex) as the INT point attribute PART_ATTRIBUTE; none: removed."""
+    if part is not None:
+        part = np.asarray(part).astype(np.int32)
+        if part.shape != (len(mesh.vertices),):
+            raise ValueError(f"{len(part)} part labels for a mesh of {len(mesh.vertices)} vertices")
+    if (old := mesh.attributes.get(PART_ATTRIBUTE)) is not None:
+        mesh.attributes.remove(old)
+    if part is None:
+        return
+    mesh.attributes.new(PART_ATTRIBUTE, "INT", "POINT").data.foreach_set("value", part)
+
+
+def part_labels(mesh: bpy.types.Mesh) -> np.ndarray | None:
+    """The mesh's part labels (int per vertex), or None when it has none (made elsewhere, or by an
+    older version) or its attribute is not one integer per vertex."""
+    attribute = mesh.attributes.get(PART_ATTRIBUTE)
+    if (attribute is None or attribute.domain != "POINT" or attribute.data_type != "INT"
+            or len(attribute.data) != len(mesh.vertices)):  # (in Edit Mode the mesh's data is not in sync)
+        return None
+    labels = np.zeros(len(mesh.vertices), dtype=np.int32)
+    attribute.data.foreach_get("value", labels)
+    return labels
 
 
 def fill_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
@@ -93,14 +123,23 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
         if (surface := alive(s.surface)) is not None and surface.mode == "EDIT":
             raise ValueError(f"leave Edit Mode on {surface.name} first")
         context.view_layer.update()  # the region and the cursor as a script just placed them
-        region = edit_region_of(nerf)  # ValueError naming a region without a box
-        self._nerf, self._region = nerf, region
+        regions = edit_regions_of(nerf)  # ValueError naming a region without a box
+        self._nerf, self._regions = nerf, regions
+        self._region_names = [r.name for r in regions_of(nerf)]
         params = {"checkpoint": checkpoint_path(nerf), "threshold": s.threshold, "resolution": s.resolution, "min_volume": s.min_volume}
-        if region is not None:
-            params["region"] = region
+        if regions:
+            params["regions"] = regions
         if s.pick_object:
             params["pick"] = list(to_nerf_frame(nerf) @ context.scene.cursor.location)
         return "extract", params, None
+
+    def _fail(self, error: Exception) -> set[str]:
+        # The worker numbers the regions ("edit regions 1 and 2 overlap"): say which Empties those are.
+        names = getattr(self, "_region_names", [])
+        if len(names) > 1 and "edit region" in str(error):
+            legend = ", ".join(f"{i + 1}: {name}" for i, name in enumerate(names))
+            error = ValueError(f"{error} (edit regions {legend})")
+        return super()._fail(error)
 
     def apply(self, context, result, arrays):
         nerf = self._nerf
@@ -122,7 +161,9 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
             s.surface = surface
         fill_mesh(surface.data, arrays["vertices"], arrays["faces"], arrays["colors"])
         set_cut_flags(surface.data, arrays.get("cut"))
-        surface.data[SURFACE_REGION_KEY] = encode_region(self._region)
+        part = arrays.get("part")
+        set_part_labels(surface.data, part if part is not None and len(part) == len(surface.data.vertices) else None)
+        surface.data[SURFACE_REGION_KEY] = encode_regions(self._regions)
         for line in result["report"].splitlines():
             self.report({"INFO"}, f"{surface.name}: {line}")
         return {"FINISHED"}

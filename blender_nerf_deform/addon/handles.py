@@ -154,6 +154,13 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
 
         select_only(context, handle)  # ready to grab with its gizmos
         self.report({"INFO"}, f"{handle.name} moves {len(vertices)} vertices")
+        from .extract_ops import part_labels  # (extract_ops imports what imports this module)
+
+        part = part_labels(surface.data)
+        spanned = np.unique(part[vertices]) if part is not None else np.zeros(0)
+        if len(spanned) > 1:
+            self.report({"WARNING"}, f"{handle.name}'s vertices span the objects of {len(spanned)} edit regions "
+                                     f"(parts {', '.join(str(int(i) + 1) for i in spanned)}): it moves each of them")
         return {"FINISHED"}
 
 

@@ -2,7 +2,8 @@
 
 import bpy
 
-from .properties import alive, handles_of, owning_nerf
+from .properties import handles_of, owning_nerf
+from .region_ops import regions_of
 
 
 class NERFDEFORM_PT_main(bpy.types.Panel):
@@ -23,14 +24,17 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         layout.label(text=nerf.name, icon="OUTLINER_OB_EMPTY")
         layout.prop(s, "checkpoint")
         box = layout.box()
-        box.label(text="Edit Region")
-        region = alive(s.edit_region)
-        row = box.row(align=True)
-        if region is None:
-            row.operator("nerf_deform.add_edit_region", icon="CUBE")
-            row.label(text="(none: the whole box)")
-        else:
-            row.operator("nerf_deform.add_edit_region", text=f"Select {region.name}", icon="RESTRICT_SELECT_OFF")
+        regions = regions_of(nerf)
+        box.label(text=f"Edit Regions ({len(regions)})" if regions else "Edit Regions")
+        box.operator("nerf_deform.add_edit_region", icon="CUBE")
+        if not regions:
+            box.label(text="(none: the whole box)")
+        for region in regions:
+            row = box.row(align=True)
+            selected = region.select_get() if context.view_layer.objects.get(region.name) == region else False
+            row.label(text=region.name, icon="CUBE")
+            row.operator("nerf_deform.select_edit_region", text="", icon="RESTRICT_SELECT_OFF" if selected else "RESTRICT_SELECT_ON",
+                         depress=selected).name = region.name
         col = box.column(align=True)
         col.prop(s, "pick_object")
         col.prop(s, "pin_cut")

@@ -6,9 +6,11 @@ transforms, so their local coordinates are the NeRF's world frame (the frame
 of its transforms.json and of every engine array). Handles are Empties whose
 region is a vertex group of the surface mesh; a handle's pose is its matrix in
 the NeRF's frame, compared with the rest matrix recorded when it was made, so
-parenting a handle to a bone, constraints and drivers all just work. The edit
-region is a cube Empty parented to the NeRF (region_ops.py): the box that
-limits extraction and the cage.
+parenting a handle to a bone, constraints and drivers all just work. Edit
+regions are cube Empties parented to the NeRF (region_ops.py): boxes that
+limit extraction and the cage, one object (and one cage piece) each; a NeRF
+owns every REGION Empty whose `nerf` is it, and `edit_region` is the one
+added last.
 
 A deleted part is gone. Deleting an object in the viewport or the outliner
 only unlinks it from its collections; our pointers (the NeRF's `surface`,
@@ -71,7 +73,7 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
     )
     edit_region: PointerProperty(
         name="Edit Region", type=bpy.types.Object, poll=lambda _self, obj: obj.type == "EMPTY",
-        description="Box Empty that limits extraction and the cage to the object being edited (none: the whole box)",
+        description="The edit region added last (a NeRF's regions are all the REGION Empties of it; none: the whole box)",
     )
     pick_object: BoolProperty(
         name="Pick at 3D Cursor", default=False,

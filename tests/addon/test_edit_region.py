@@ -5,6 +5,7 @@ picks. Real headless Blender and the real worker."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -87,11 +88,14 @@ def test_add_edit_region_makes_a_box_empty_whose_region_follows_its_transform(ad
     box = region_from_dict(d)
     assert np.allclose(box.to_world(corner_local * box.half), corner_nerf, atol=1e-5)
 
-    # A second Add Edit Region selects the region it has.
-    bpy.context.view_layer.objects.active = nerf
+    # A second Add Edit Region adds a second region (one object, and one cage, each), around the
+    # cursor; the NeRF's `edit_region` is the one added last.
+    from blender_nerf_deform.addon.region_ops import regions_of
+
     n_objects = len(bpy.data.objects)
-    assert bpy.ops.nerf_deform.add_edit_region() == {"FINISHED"}
-    assert len(bpy.data.objects) == n_objects and bpy.context.active_object == region
+    second = _add_region(bpy, nerf)
+    assert second != region and len(bpy.data.objects) == n_objects + 1
+    assert regions_of(nerf) == sorted([region, second], key=lambda o: o.name)
 
 
 def test_a_new_region_with_the_cursor_outside_the_box_covers_the_whole_box(addon):
@@ -105,6 +109,12 @@ def test_a_new_region_with_the_cursor_outside_the_box_covers_the_whole_box(addon
     bpy.context.view_layer.update()
     d = edit_region_of(nerf)
     assert np.allclose(d["center"], [1.0, 0.0, 0.5], atol=1e-6) and np.allclose(d["size"], [4.0, 4.0, 1.0], atol=1e-5)
+    # A second one would overlap a whole-box first: a third of the box at its middle (still added;
+    # Extract Mesh reports the overlap).
+    _add_region(bpy, nerf)
+    bpy.context.view_layer.update()
+    d = edit_region_of(nerf)
+    assert np.allclose(d["center"], [1.0, 0.0, 0.5], atol=1e-6) and np.allclose(d["size"], [4 / 3, 4 / 3, 1 / 3], atol=1e-5)
 
 
 def test_regions_without_a_box_are_refused_before_anything_is_extracted(addon):
@@ -175,7 +185,7 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
     from blender_nerf_deform.addon.deformation import deformed_cage
     from blender_nerf_deform.addon.extract_ops import cut_flags
     from blender_nerf_deform.addon.handles import group_vertices
-    from blender_nerf_deform.addon.region_ops import edit_region_of, extracted_region
+    from blender_nerf_deform.addon.region_ops import edit_region_of, extracted_regions
 
     ckpt, _ = sphere_nerf
     nerf = _nerf(bpy, ckpt)
@@ -193,7 +203,7 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
     assert co[:, 2].max() < 0.05 and co[:, 2].min() < -0.6  # the lower half only
     assert cut.sum() > 20 and np.abs(co[cut, 2]).max() < 0.06  # closed (and flagged) along the cut at z = 0
     assert np.abs(co[~cut, 2]).min() < 0.2 and co[~cut, 2].mean() < -0.3
-    assert extracted_region(surface) == edit_region_of(nerf)
+    assert extracted_regions(surface) == [edit_region_of(nerf)]
 
     bpy.context.view_layer.objects.active = nerf
     assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
@@ -245,14 +255,14 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
     nerf = next(o for o in bpy.data.objects if o.nerf_deform.role == "NERF")
     assert np.array_equal(cage_pins(nerf.nerf_deform.cage), pins) and len(pins)
     assert np.array_equal(cut_flags(nerf.nerf_deform.surface.data), cut)
-    assert extracted_region(nerf.nerf_deform.surface) == edit_region_of(nerf)
+    assert extracted_regions(nerf.nerf_deform.surface) == [edit_region_of(nerf)]
 
 
 @pytest.mark.slow
 def test_bad_regions_and_picks_get_the_workers_error_and_leave_the_scene_alone(addon, sphere_nerf):
     bpy = addon
     from blender_nerf_deform.addon.extract_ops import cut_flags
-    from blender_nerf_deform.addon.region_ops import extracted_region
+    from blender_nerf_deform.addon.region_ops import extracted_regions
 
     ckpt, _ = sphere_nerf
     nerf = _nerf(bpy, ckpt)
@@ -283,7 +293,192 @@ def test_bad_regions_and_picks_get_the_workers_error_and_leave_the_scene_alone(a
     assert bpy.ops.nerf_deform.extract_mesh() == {"FINISHED"}
     surface = nerf.nerf_deform.surface
     co = _co(surface.data)
-    assert nerf.nerf_deform.edit_region is None and extracted_region(surface) is None
+    assert nerf.nerf_deform.edit_region is None and extracted_regions(surface) == []
     # (The briefly trained NeRF's top is faint: at the threshold its mesh reaches z ~ 0.35 there.)
     assert co[:, 2].min() < -0.6 and co[:, 2].max() > 0.2
     assert not cut_flags(surface.data).any()  # the sphere lies inside the box: nothing cut
+
+
+def test_a_single_region_file_still_counts_its_region_and_its_recorded_region(addon):
+    """Files of the single-region version: the NeRF's `edit_region` pointer (even to an Empty not
+    marked as a region of it) counts, and a surface's recorded region is one REGION dict."""
+    bpy = addon
+    import json
+
+    from blender_nerf_deform.addon.region_ops import (SURFACE_REGION_KEY, edit_regions_of, extracted_regions,
+                                                      regions_of)
+
+    nerf = _nerf(bpy)
+    old = bpy.data.objects.new("Old Region", None)
+    old.empty_display_type = "CUBE"
+    bpy.context.scene.collection.objects.link(old)
+    old.parent = nerf
+    nerf.nerf_deform.edit_region = old
+    assert regions_of(nerf) == [old] and len(edit_regions_of(nerf)) == 1
+    new = _add_region(bpy, nerf)  # a second one beside it: both count, by name
+    assert regions_of(nerf) == sorted([old, new], key=lambda o: o.name) and nerf.nerf_deform.edit_region == new
+
+    mesh = bpy.data.meshes.new("Surface")
+    surface = bpy.data.objects.new("Surface", mesh)
+    one = {"center": [0.0, 0.1, 0.2], "size": [1.0, 1.0, 1.0], "rotation_euler": [0.0, 0.0, 0.0]}
+    for text, expected in ((json.dumps(one), [one]), (json.dumps([one, one]), [one, one]), ("", []),
+                           ("not json", []), ("[1, 2]", []), ('"text"', [])):
+        mesh[SURFACE_REGION_KEY] = text
+        assert extracted_regions(surface) == expected, text
+
+
+def test_cage_vertex_parts_follow_the_pieces_the_surface_is_embedded_in():
+    from blender_nerf_deform.addon.cage_store import cage_vertex_parts
+
+    # Two pieces (vertices 0-4 and 5-9, two tets each) and a stray tet (10-13) holding no surface vertex.
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [5, 6, 7, 8], [6, 7, 8, 9], [10, 11, 12, 13]])
+    tet_ids = np.array([0, 1, 1, 2, 3, 3])
+    surface_part = np.array([2, 2, 0, 5, 5, 5])  # piece 0: mostly part 2; piece 1: part 5
+    part = cage_vertex_parts(14, tets, tet_ids, surface_part)
+    assert part.tolist() == [2] * 5 + [5] * 5 + [5] * 4
+    assert (cage_vertex_parts(4, tets[:1], np.zeros(0, int), np.zeros(0, int)) == -1).all()
+
+
+def _two_region_camera(bpy, size=40):
+    """A camera on the -y side looking along +y at the sphere: image columns left of the middle see x < 0."""
+    scene = bpy.context.scene
+    cam_data = bpy.data.cameras.new("Camera")
+    cam_data.sensor_fit, cam_data.angle_x = "HORIZONTAL", 0.75
+    camera = bpy.data.objects.new("Camera", cam_data)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    camera.location, camera.rotation_euler = (0.0, -4.0, -0.3), (math.pi / 2, 0.0, 0.0)
+    scene.render.resolution_x = scene.render.resolution_y = size
+    scene.render.resolution_percentage = 100
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    scene.render.image_settings.color_depth = "8"
+
+
+def _render(bpy, path):
+    from PIL import Image
+
+    bpy.context.scene.render.filepath = str(path)
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    return np.asarray(Image.open(path).convert("RGBA"), dtype=np.int16)
+
+
+@pytest.mark.slow
+def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon, sphere_nerf, tmp_path):
+    """Issue 14: two objects of one NeRF (the sphere's left and right lower parts) edited
+    separately: one mesh with two parts, one cage with two pieces, each pinned at its own cut; a
+    handle on the left part moves the left piece only, and the frame changes on the left only."""
+    bpy = addon
+    from blender_nerf_deform.addon import jobs
+    from blender_nerf_deform.addon.cage_store import cage_pins, load_cage
+    from blender_nerf_deform.addon.deformation import deformed_cage
+    from blender_nerf_deform.addon.extract_ops import cut_flags, part_labels
+    from blender_nerf_deform.addon.region_ops import edit_regions_of, extracted_regions, regions_of, same_regions
+
+    ckpt, _ = sphere_nerf
+    nerf = _nerf(bpy, ckpt)
+    left = _add_region(bpy, nerf)
+    right = _add_region(bpy, nerf)
+    assert regions_of(nerf) == [left, right]  # by name: "... Region", "... Region.001"
+
+    # Overlapping: the engine's error, the regions named, and nothing made.
+    _place(bpy, left, (-0.4, 0.0, -0.35), (0.8, 2.0, 1.1))
+    _place(bpy, right, (0.2, 0.0, -0.35), (0.8, 2.0, 1.1))
+    n_objects = len(bpy.data.objects)
+    bpy.context.view_layer.objects.active = nerf
+    with pytest.raises(RuntimeError, match=rf"edit regions 1 and 2 overlap.*1: {re.escape(left.name)}, 2: {re.escape(right.name)}"):
+        bpy.ops.nerf_deform.extract_mesh()
+    assert nerf.nerf_deform.surface is None and len(bpy.data.objects) == n_objects
+
+    # Apart: x in [-0.9, -0.45] and [0.45, 0.9], z in [-0.9, 0.2] (the sphere's dense lower sides; far
+    # enough apart that the two cages do not meet: the briefly trained NeRF's soft density widens
+    # each cage's margin, and its envelope reaches ~0.4 beyond the cut).
+    _place(bpy, left, (-0.675, 0.0, -0.35), (0.45, 2.0, 1.1))
+    _place(bpy, right, (0.675, 0.0, -0.35), (0.45, 2.0, 1.1))
+    bpy.context.view_layer.objects.active = right  # any part of the NeRF will do
+    assert bpy.ops.nerf_deform.extract_mesh() == {"FINISHED"}
+    surface = nerf.nerf_deform.surface
+    co, cut, part = _co(surface.data), cut_flags(surface.data), part_labels(surface.data)
+    assert part is not None and sorted(np.unique(part)) == [0, 1]
+    assert same_regions(extracted_regions(surface), edit_regions_of(nerf))
+    for i, sign in ((0, -1.0), (1, 1.0)):
+        mine = part == i
+        assert mine.sum() > 50 and (sign * co[mine, 0]).min() > 0.05, i  # each part on its own side
+        inner = mine & cut & (np.abs(co[:, 0] - sign * 0.45) < 0.06)  # closed along its inner face x = ±0.45
+        assert inner.sum() > 10, i
+        on_faces = (np.abs(co[:, 0] - sign * 0.45) < 0.06) | (np.abs(co[:, 2] - 0.2) < 0.06)
+        assert on_faces[mine & cut].all(), i  # the cut lies on the faces that cut the sphere
+
+    bpy.context.view_layer.objects.active = nerf
+    assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
+    cage = nerf.nerf_deform.cage
+    rest, tets = load_cage(cage.data)
+    cage_part, pins = part_labels(cage.data), cage_pins(cage)
+    assert cage_part is not None and sorted(np.unique(cage_part)) == [0, 1]
+    assert (cage_part[tets] == cage_part[tets[:, :1]]).all()  # no tet joins the two pieces
+    left_x, right_x = rest[cage_part == 0, 0], rest[cage_part == 1, 0]
+    assert left_x.max() < right_x.min(), (left_x.max(), right_x.min())  # side by side, apart
+    assert (np.bincount(cage_part[pins], minlength=2) > 5).all()  # pinned at both cuts
+
+    # A handle on the left part's outer side, moved down.
+    from test_handles import _select_in_edit_mode
+
+    outer_left = np.flatnonzero((part == 0) & (co[:, 0] < -0.65))
+    _select_in_edit_mode(bpy, surface, outer_left)
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    handle = bpy.context.active_object
+
+    _two_region_camera(bpy)
+    bpy.context.scene.render.engine = "NERF_DEFORM"
+    at_rest = _render(bpy, tmp_path / "rest.png")
+    handle.location.z -= 0.25
+    bpy.context.view_layer.update()
+    deformed = deformed_cage(nerf, bpy.context.evaluated_depsgraph_get(), jobs.worker(bpy.context))
+    assert np.abs(deformed[cage_part == 1] - rest[cage_part == 1]).max() < 1e-9  # the right piece at rest
+    assert np.abs(deformed[cage_part == 0] - rest[cage_part == 0]).max() > 0.15  # the left one moved
+    moved = _render(bpy, tmp_path / "moved.png")
+
+    # The columns whose rays never reach the left piece (rest or moved): x = (y + 4) tan(angle) stays
+    # right of it for y >= the cage's nearest y.
+    w = at_rest.shape[1]
+    reach = max(rest[cage_part == 0, 0].max(), deformed[cage_part == 0, 0].max())
+    depth = 4.0 + min(rest[:, 1].min(), deformed[:, 1].min())
+    column_x = (np.arange(w) + 0.5 - w / 2) / (w / 2) * math.tan(0.75 / 2)  # x per unit of depth
+    clear = column_x * depth > reach + 0.02
+    assert clear.sum() > w // 3, (reach, depth)
+    assert at_rest[:, clear, 3].max() > 120  # the right object is in view there
+    diff = np.abs(moved - at_rest).max(axis=-1)
+    assert diff[:, : w // 2 - 2].max() > 60  # the left object moved
+    assert diff[:, clear].max() <= 2  # the right object renders as at rest
+
+    # Saved and reopened: both regions, the parts of the mesh and of the cage, the pins.
+    before = edit_regions_of(nerf)
+    blend = tmp_path / "two.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    nerf = next(o for o in bpy.data.objects if o.nerf_deform.role == "NERF")
+    regions = regions_of(nerf)
+    assert len(regions) == 2 and same_regions(edit_regions_of(nerf), before)
+    surface, cage = nerf.nerf_deform.surface, nerf.nerf_deform.cage
+    assert np.array_equal(part_labels(surface.data), part) and np.array_equal(part_labels(cage.data), cage_part)
+    assert np.array_equal(cage_pins(cage), pins) and same_regions(extracted_regions(surface), before)
+
+
+def test_add_handle_says_when_its_vertices_span_two_regions_objects(addon, capfd):
+    bpy = addon
+    from blender_nerf_deform.addon.extract_ops import part_labels, set_part_labels
+    from test_handles import _nerf_with_surface
+
+    nerf, surface, verts = _nerf_with_surface(bpy)
+    set_part_labels(surface.data, (verts[:, 0] > 0).astype(np.int32))  # two objects: x <= 0 and x > 0
+    assert np.array_equal(part_labels(surface.data), verts[:, 0] > 0)
+    with pytest.raises(ValueError, match="3 part labels for a mesh of 125 vertices"):
+        set_part_labels(surface.data, np.zeros(3))
+
+    _select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] < -0.4))  # one object's side
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    assert "span the objects" not in capfd.readouterr().out
+    _select_in_edit_mode(bpy, surface, np.flatnonzero((verts[:, 2] > 0.4) & (verts[:, 0] > -0.4)))  # the top of both
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    assert "vertices span the objects of 2 edit regions (parts 1, 2)" in capfd.readouterr().out
