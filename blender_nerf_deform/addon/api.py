@@ -1,0 +1,169 @@
+"""A small Python API over the operators, for scripts and `blender -b --python` pipelines.
+
+    from blender_nerf_deform.addon import api          # (bl_ext.<repo>.blender_nerf_deform.addon as an extension)
+
+    nerf = api.train("/data/fox", seconds=600)          # or api.load("run/nerf.ckpt")
+    region = api.add_edit_region(nerf, center=(1.6, -0.5, 0.1), size=(4, 5, 3), rotation_euler=(1.66, 0, 1.08))
+    surface = api.extract(nerf, resolution=192, pick=(1.7, -1.5, 0.55))
+    cage = api.build_cage(nerf)
+    head = api.vertices_near(surface, (1.7, -1.5, 0.55), 0.75)
+    handle = api.add_handle(nerf, head)
+    handle.rotation_euler.z = 0.5                       # then render: bpy.ops.render.render(write_still=True)
+
+Every function runs the add-on's operator (so a script does exactly what the buttons do), blocks
+until the worker answers, and raises `RuntimeError` with the operator's own message when it
+fails (a bad path, a region outside the box, ...). Coordinates are in the NeRF's frame (its
+transforms.json's world), as the engine's command line takes them.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+from mathutils import Euler, Vector
+
+from .properties import owning_nerf
+
+
+def _run(operator, what: str, **kwargs):
+    result = operator(**kwargs)
+    if result != {"FINISHED"}:
+        raise RuntimeError(f"{what} did not finish ({', '.join(sorted(result))})")
+
+
+def _activate(obj) -> None:
+    view_layer = bpy.context.view_layer
+    if view_layer.objects.active is not None and view_layer.objects.active.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    for other in bpy.context.selected_objects:
+        other.select_set(False)
+    obj.select_set(True)
+    view_layer.objects.active = obj
+
+
+def _nerf(obj) -> bpy.types.Object:
+    nerf = owning_nerf(obj)
+    if nerf is None:
+        raise RuntimeError(f"{getattr(obj, 'name', obj)!r} is not a NeRF object or one of its parts")
+    return nerf
+
+
+def load(checkpoint: str) -> bpy.types.Object:
+    """Load NeRF: the NeRF object of a checkpoint."""
+    _run(bpy.ops.nerf_deform.load_nerf, "Load NeRF", filepath=str(checkpoint))
+    return bpy.context.active_object
+
+
+def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 0, device: str = "auto",
+          downscale: int = 1, resume: bool = False) -> bpy.types.Object:
+    """Train NeRF on a dataset folder (blocking), then the NeRF object that shows it."""
+    _run(bpy.ops.nerf_deform.train_nerf, "Train NeRF", data=str(data), run_folder=str(run_folder), seconds=seconds,
+         steps=steps, device=device, downscale=downscale, resume=resume)
+    from .train_ops import _same_file, default_run_folder
+    import os
+
+    ckpt = os.path.join(os.path.abspath(bpy.path.abspath(run_folder)) if run_folder else default_run_folder(
+        os.path.abspath(bpy.path.abspath(data))), "nerf.ckpt")
+    for obj in bpy.data.objects:
+        if obj.nerf_deform.role == "NERF" and obj.nerf_deform.checkpoint and \
+                _same_file(bpy.path.abspath(obj.nerf_deform.checkpoint), ckpt):
+            return obj
+    raise RuntimeError(f"Train NeRF finished but no NeRF object shows {ckpt}")
+
+
+def add_edit_region(nerf, center, size, rotation_euler=(0.0, 0.0, 0.0)) -> bpy.types.Object:
+    """Add Edit Region, placed at `center` with side lengths `size` and an XYZ Euler rotation (NeRF frame)."""
+    nerf = _nerf(nerf)
+    _activate(nerf)
+    _run(bpy.ops.nerf_deform.add_edit_region, "Add Edit Region")
+    region = bpy.context.active_object
+    region.location = Vector(center)
+    region.rotation_euler = Euler(rotation_euler, "XYZ")
+    region.scale = Vector(size) * (0.5 / region.empty_display_size)  # a cube Empty spans +-display size
+    bpy.context.view_layer.update()
+    return region
+
+
+def extract(nerf, resolution: int | None = None, threshold: float | None = None, pick=None) -> bpy.types.Object:
+    """Extract Mesh (inside the NeRF's edit region when it has one; with `pick`, a point in the NeRF's
+    frame, only the part connected to it): the surface mesh object."""
+    nerf = _nerf(nerf)
+    s = nerf.nerf_deform
+    if resolution is not None:
+        s.resolution = int(resolution)
+    if threshold is not None:
+        s.threshold = float(threshold)
+    s.pick_object = pick is not None
+    if pick is not None:
+        bpy.context.scene.cursor.location = nerf.matrix_world @ Vector(pick)
+    _activate(nerf)
+    _run(bpy.ops.nerf_deform.extract_mesh, "Extract Mesh")
+    return s.surface
+
+
+def build_cage(nerf, pin_cut: bool = True) -> bpy.types.Object:
+    """Build Cage (pinned where the edit region cut the scene, unless `pin_cut` is False): the cage object."""
+    nerf = _nerf(nerf)
+    nerf.nerf_deform.pin_cut = pin_cut
+    _activate(nerf)
+    _run(bpy.ops.nerf_deform.build_cage, "Build Cage")
+    return nerf.nerf_deform.cage
+
+
+def vertices_near(surface, point, radius: float) -> np.ndarray:
+    """Indices of the surface mesh's vertices within `radius` of `point` (NeRF frame)."""
+    co = np.empty(3 * len(surface.data.vertices))
+    surface.data.vertices.foreach_get("co", co)
+    return np.flatnonzero(np.linalg.norm(co.reshape(-1, 3) - np.asarray(point, dtype=np.float64), axis=1) <= radius)
+
+
+def _select(surface, indices) -> None:
+    import bmesh
+
+    _activate(surface)
+    bpy.ops.object.mode_set(mode="EDIT")
+    bm = bmesh.from_edit_mesh(surface.data)
+    bm.verts.ensure_lookup_table()
+    for element in (*bm.faces, *bm.edges, *bm.verts):
+        element.select = False
+    count = len(bm.verts)
+    for i in np.asarray(indices, dtype=np.int64).ravel():
+        if not 0 <= i < count:
+            bpy.ops.object.mode_set(mode="OBJECT")
+            raise RuntimeError(f"vertex {i} is not a vertex of {surface.name} (0..{count - 1})")
+        bm.verts[int(i)].select = True
+    bmesh.update_edit_mesh(surface.data)
+
+
+def _on_surface(nerf, indices, operator, what):
+    nerf = _nerf(nerf)
+    surface = nerf.nerf_deform.surface
+    if surface is None:
+        raise RuntimeError(f"{nerf.name} has no extracted mesh: run extract() first")
+    _select(surface, indices)
+    try:
+        _run(operator, what)
+        made = bpy.context.active_object
+    finally:
+        if surface.mode == "EDIT":
+            bpy.context.view_layer.objects.active = surface
+            bpy.ops.object.mode_set(mode="OBJECT")
+    return made
+
+
+def add_handle(nerf, vertex_indices) -> bpy.types.Object:
+    """Add Handle on these vertices of the NeRF's extracted mesh: the handle Empty (move, turn, key it)."""
+    return _on_surface(nerf, vertex_indices, bpy.ops.nerf_deform.add_handle, "Add Handle")
+
+
+def pin(nerf, vertex_indices) -> None:
+    """Pin Selection: these vertices of the extracted mesh stay where they are."""
+    _on_surface(nerf, vertex_indices, bpy.ops.nerf_deform.pin_selection, "Pin Selection")
+
+
+def place_cursor_on_nerf(nerf, origin, direction) -> Vector:
+    """Place 3D Cursor on NeRF along a world-space ray; returns the cursor's location."""
+    _activate(_nerf(nerf))
+    _run(bpy.ops.nerf_deform.place_cursor_on_nerf, "Place 3D Cursor on NeRF", origin=tuple(origin),
+         direction=tuple(direction))
+    return bpy.context.scene.cursor.location.copy()
