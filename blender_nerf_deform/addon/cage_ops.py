@@ -131,6 +131,8 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
             self.report({"INFO"}, f"{cage.name}: Pin Cut is off: the cut ({n_cut} mesh vertices) moves with the cage")
         if self._note:
             self.report({"WARNING"}, f"{cage.name}: {self._note}")
+        for line in result.get("warnings", []):
+            self.report({"WARNING"}, f"{cage.name}: {line}")
         return {"FINISHED"}
 
 

@@ -249,3 +249,16 @@ def test_overlapping_regions_and_a_pick_outside_them_are_refused():
         extract_regions(one, [region_from_dict(REGION), region_from_dict(BOX_REGION)])
     with pytest.raises(EngineError, match="lies in none of the 2 edit regions"):
         extract_regions(one, [region_from_dict(STATUE_REGION), region_from_dict(BOX_REGION)], pick=[-1.2, -1.2, 0.0])
+
+
+def test_cages_of_two_regions_that_meet_are_reported():
+    from blender_nerf_deform.engine.geometry.cage import box_cage, overlapping_pieces
+
+    a_v, a_t = box_cage((2, 2, 2), lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0))
+    b_v, b_t = box_cage((2, 2, 2), lo=(0.8, 0.2, 0.2), hi=(1.8, 0.8, 0.8))  # 0.2 into the first
+    V, T = np.concatenate([a_v, b_v]), np.concatenate([a_t, b_t + len(a_v)])
+    part = np.r_[np.zeros(len(a_v), int), np.ones(len(b_v), int)]
+    lines = overlapping_pieces(V, T, part)
+    assert len(lines) == 1 and "edit regions 1 and 2 overlap" in lines[0]
+    apart = np.concatenate([a_v, b_v + [0.5, 0.0, 0.0]])
+    assert overlapping_pieces(apart, T, part) == []

@@ -11,6 +11,8 @@ Where the mesh was closed along an edit region's cut (its `nerf_cut` vertices, o
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from ..files import check_writable
@@ -56,6 +58,8 @@ def main(args) -> int:
         f"{vertices_outside(cage.vertices, aabb)} vertices outside the NeRF's bounds; envelope {cage.timings['envelope_s']:.1f}s, "
         f"tetrahedralize {cage.timings['tetrahedralize_s']:.1f}s -> {args.out}"
     )
+    for line in cage.warnings:
+        print(f"warning: {line}", file=sys.stderr)
     if cut is not None and cut.any():
         print(f"cut: {int(cut.sum())} mesh vertices close the region's cut; "
               + ("not pinned (--no-pin-cut)" if args.no_pin_cut else f"{len(pinned)} cage vertices pinned there"))

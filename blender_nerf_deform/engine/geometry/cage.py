@@ -138,6 +138,7 @@ class Cage:
     margin: float
     clearance: float  # smallest distance from the object's vertices to the cage boundary
     timings: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)  # what the user should know (cages of two regions meeting)
 
 
 def envelope(vertices: np.ndarray, faces: np.ndarray, offset: float, max_cells: int = 160) -> tuple[np.ndarray, np.ndarray, float]:
@@ -400,7 +401,31 @@ def build_part_cages(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray,
             timings[k] = timings.get(k, 0) + v
     merged = Cage(vertices=np.concatenate([c[0] for c in cages]), tets=np.concatenate([c[1] for c in cages]),
                   margin=min(c[2].margin for c in cages), clearance=min(c[2].clearance for c in cages), timings=timings)
-    return merged, np.concatenate(labels)
+    labels = np.concatenate(labels)
+    merged.warnings = overlapping_pieces(merged.vertices, merged.tets, labels)
+    return merged, labels
+
+
+def overlapping_pieces(vertices: np.ndarray, tets: np.ndarray, part: np.ndarray) -> list[str]:
+    """One line per pair of parts whose cages overlap (a vertex of one inside the other's tets):
+    there a deformed point could belong to either object, so renders are ambiguous."""
+    from .embedding import locate
+
+    tet_part = part[tets[:, 0]]
+    lines = []
+    ids = np.unique(part)
+    for i in ids:
+        for j in ids:
+            if j <= i:
+                continue
+            tid, _ = locate(vertices[part == i], vertices, tets[tet_part == j])
+            inside = int((tid >= 0).sum())
+            tid, _ = locate(vertices[part == j], vertices, tets[tet_part == i])
+            inside += int((tid >= 0).sum())
+            if inside:
+                lines.append(f"the cages of edit regions {i + 1} and {j + 1} overlap ({inside} cage vertices of one "
+                             "lie inside the other): renders there are ambiguous; move the regions further apart")
+    return lines
 
 
 def part_cut_pins(cage_vertices: np.ndarray, cage_part: np.ndarray, mesh_vertices: np.ndarray, mesh_part: np.ndarray,

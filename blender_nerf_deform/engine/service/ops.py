@@ -214,7 +214,8 @@ def cage(job: Job) -> tuple[dict, dict]:
         pinned = np.zeros(0, dtype=np.int64)
     result = {"n_vertices": int(len(built.vertices)), "n_tets": int(len(built.tets)), "margin": built.margin,
               "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings,
-              "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0, "n_pinned": int(len(pinned))}
+              "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0, "n_pinned": int(len(pinned)),
+              "warnings": list(built.warnings)}
     return result, {"vertices": built.vertices, "tets": built.tets, "tet_ids": embedding.tet_ids,
                     "weights": embedding.weights, "pinned_vertices": pinned}
 
