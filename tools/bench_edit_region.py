@@ -340,10 +340,19 @@ def main(argv=None) -> int:
     figures = {"region": region}
     if not args.skip_cli:
         figures["command_line"] = command_line(args, work, region_json)
-    figures["blender"] = blender_part(args, work, region)
+    figures["blender"] = b = blender_part(args, work, region)
     print(json.dumps(figures))
     print(f"frames and masks in {work}")
-    return 0
+    # The checks: outside both cages nothing changed, the head did move, no NaN, no hole at the cut.
+    failed = [what for what, ok in (
+        (f"PSNR outside the cages {b['psnr_outside_cages_db']:.1f} dB >= 45", b["psnr_outside_cages_db"] >= 45.0),
+        (f"the head moved (mean colour change {b['head_mean_rgb_change']:.3f} > 0.02)", b["head_mean_rgb_change"] > 0.02),
+        (f"no NaN pixel ({b['nan_pixels']})", b["nan_pixels"] == 0),
+        (f"no hole at the cut (plaque min alpha {b['plaque_min_alpha']} >= 0.5)",
+         b["plaque_min_alpha"] is not None and b["plaque_min_alpha"] >= 0.5)) if not ok]
+    for what in failed:
+        print(f"FAILED: {what}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
