@@ -153,21 +153,6 @@ def _render_exr(bpy, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return rgba.astype(np.float64), next(iter(passes["Depth"].values())).astype(np.float64)
 
 
-def _select_vertices(bpy, surface, indices) -> None:
-    import bmesh
-
-    bpy.context.view_layer.objects.active = surface
-    if surface.mode != "EDIT":
-        bpy.ops.object.mode_set(mode="EDIT")
-    bm = bmesh.from_edit_mesh(surface.data)
-    bm.verts.ensure_lookup_table()
-    for element in (*bm.faces, *bm.edges, *bm.verts):
-        element.select = False
-    for i in indices:
-        bm.verts[int(i)].select = True
-    bmesh.update_edit_mesh(surface.data)
-
-
 def _raster(shape, pinhole, vertices, triangles) -> np.ndarray:
     """Pixels covered by the projection of triangles (every point in front of the camera)."""
     from PIL import Image, ImageDraw
@@ -193,7 +178,7 @@ def blender_part(args, work: Path, region: dict) -> dict:
     from mathutils import Euler, Matrix, Vector
 
     import blender_nerf_deform
-    from blender_nerf_deform.addon import deformation, jobs
+    from blender_nerf_deform.addon import api, deformation, jobs
     from blender_nerf_deform.addon.camera import pinhole_from_blender
     from blender_nerf_deform.addon.cage_store import cage_pins, load_cage
     from blender_nerf_deform.engine.geometry.barycentric import boundary_faces
@@ -230,13 +215,7 @@ def blender_part(args, work: Path, region: dict) -> dict:
         head = np.flatnonzero(np.linalg.norm(co - HEAD_POINT, axis=1) < HEAD_RADIUS)
         if len(head) < 20:
             raise SystemExit(f"only {len(head)} surface vertices near the head point: is this the fox?")
-        _select_vertices(bpy, surface, head)
-        bpy.context.view_layer.objects.active = surface
-        _ok(bpy.ops.nerf_deform.add_handle(), "Add Handle")
-        handle = bpy.context.active_object
-        if surface.mode == "EDIT":
-            bpy.context.view_layer.objects.active = surface
-            bpy.ops.object.mode_set(mode="OBJECT")
+        handle = api.add_handle(nerf, head)  # selected in Edit Mode, Add Handle, back to Object Mode
 
         ds = load_dataset(args.data, downscale=args.downscale, load_images=False)
         cam = ds.cameras[args.view]

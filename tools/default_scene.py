@@ -245,22 +245,24 @@ def check(bpy) -> None:
                 raise AssertionError(f"{name}: bounds {lo}..{hi}, documented {bounds}")
 
 
-def save(path, bpy=None) -> Path:
-    """Build the default scene in a fresh, empty Blender file and save it to `path` (.blend)."""
+def save_scene(path, build_scene, check_scene, bpy=None) -> Path:
+    """Build a procedural scene (`build_scene(bpy)`, checked by `check_scene(bpy)`) in a fresh, empty
+    Blender file and save it to `path` (.blend). What every scene tool here writes with."""
     if bpy is None:
         import bpy  # noqa: PLC0415
     path = Path(path).resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    build(bpy)
-    check(bpy)
+    build_scene(bpy)
+    check_scene(bpy)
     # Blender writes to "<file>@" and renames, so the .blend is never half-written.
     bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)
     return path
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="default_scene.py", description=__doc__.split("\n\n")[0])
+def scene_main(argv, prog: str, doc: str, save_to) -> int:
+    """The scene tools' command line: `--out FILE.blend`, checked, then `save_to(path)`."""
+    parser = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
     parser.add_argument("--out", required=True, type=Path, help="the .blend to write")
     args = parser.parse_args(argv)
     if args.out.suffix != ".blend":
@@ -269,8 +271,17 @@ def main(argv=None) -> int:
     if args.out.exists() and args.out.is_dir():
         print(f"error: --out is a folder: {args.out}", file=sys.stderr)
         return 2
-    print(f"wrote {save(args.out)}", flush=True)
+    print(f"wrote {save_to(args.out)}", flush=True)
     return 0
+
+
+def save(path, bpy=None) -> Path:
+    """Build the default scene in a fresh, empty Blender file and save it to `path` (.blend)."""
+    return save_scene(path, build, check, bpy)
+
+
+def main(argv=None) -> int:
+    return scene_main(argv, "default_scene.py", __doc__, save)
 
 
 if __name__ == "__main__":

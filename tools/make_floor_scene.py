@@ -42,7 +42,6 @@ The scene's custom property "nerf_floor" (JSON) holds the boxes above.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -51,7 +50,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 # bpy is passed in, not imported: the constants below import without Blender.
-from tools.default_scene import camera_at  # noqa: E402
+from tools.default_scene import camera_at, save_scene, scene_main  # noqa: E402
 from tools.make_room_scene import _link, _smooth, checker_material, diffuse_material, noise_material, wave_material  # noqa: E402
 
 FLOOR_TOP = -0.9
@@ -205,29 +204,11 @@ def check(bpy) -> None:
 
 def save(path, bpy=None) -> Path:
     """Build the floor scene in a fresh, empty Blender file and save it to `path` (.blend)."""
-    if bpy is None:
-        import bpy  # noqa: PLC0415
-    path = Path(path).resolve()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    build(bpy)
-    check(bpy)
-    bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)
-    return path
+    return save_scene(path, build, check, bpy)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="make_floor_scene.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", required=True, type=Path, help="the .blend to write")
-    args = parser.parse_args(argv)
-    if args.out.suffix != ".blend":
-        print(f"error: --out must end in .blend, got {args.out}", file=sys.stderr)
-        return 2
-    if args.out.exists() and args.out.is_dir():
-        print(f"error: --out is a folder: {args.out}", file=sys.stderr)
-        return 2
-    print(f"wrote {save(args.out)}", flush=True)
-    return 0
+    return scene_main(argv, "make_floor_scene.py", __doc__, save)
 
 
 if __name__ == "__main__":

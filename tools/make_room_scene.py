@@ -44,7 +44,6 @@ The scene's custom property "nerf_room" (JSON) holds the boxes above.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -52,7 +51,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from tools.default_scene import black_world, camera_at  # noqa: E402  (bpy is passed in, not imported)
+from tools.default_scene import black_world, camera_at, save_scene, scene_main  # noqa: E402  (bpy is passed in, not imported)
 
 OBJECT_BOUNDS = ((-0.7, -0.7, -0.55), (0.7, 0.7, 0.55))  # everything above the pedestal column
 ROOM_BOUNDS = ((-4.5, -4.5, -2.0), (4.5, 4.5, 4.0))  # inner faces of walls, floor, ceiling
@@ -433,29 +432,11 @@ def check(bpy) -> None:
 
 def save(path, bpy=None) -> Path:
     """Build the room scene in a fresh, empty Blender file and save it to `path` (.blend)."""
-    if bpy is None:
-        import bpy  # noqa: PLC0415
-    path = Path(path).resolve()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    build(bpy)
-    check(bpy)
-    bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)  # written to "<file>@", then renamed
-    return path
+    return save_scene(path, build, check, bpy)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="make_room_scene.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", required=True, type=Path, help="the .blend to write")
-    args = parser.parse_args(argv)
-    if args.out.suffix != ".blend":
-        print(f"error: --out must end in .blend, got {args.out}", file=sys.stderr)
-        return 2
-    if args.out.exists() and args.out.is_dir():
-        print(f"error: --out is a folder: {args.out}", file=sys.stderr)
-        return 2
-    print(f"wrote {save(args.out)}", flush=True)
-    return 0
+    return scene_main(argv, "make_room_scene.py", __doc__, save)
 
 
 if __name__ == "__main__":

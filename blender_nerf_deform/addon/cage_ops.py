@@ -15,7 +15,7 @@ from .extract_ops import cut_flags, part_labels, set_part_labels
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
 from .preview import PREVIEW_KEY
-from .properties import alive, alive_object, forget_deleted, owning_nerf
+from .properties import OnNeRF, alive, alive_object, forget_deleted, owning_nerf
 from .region_ops import edit_regions_of, extracted_regions, same_regions
 
 
@@ -30,19 +30,12 @@ def surface_arrays(surface: bpy.types.Object) -> dict[str, np.ndarray]:
     return {"vertices": co.reshape(-1, 3).astype(np.float64), "faces": tris.reshape(-1, 3)}
 
 
-class NERFDEFORM_OT_build_cage(WorkerOperator, bpy.types.Operator):
+class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
     """Build the NeRF's tetrahedral cage around its extracted mesh (once; every frame deforms this cage)"""
 
     bl_idname = "nerf_deform.build_cage"
     bl_label = "Build Cage"
     bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        if owning_nerf(context.active_object) is None:
-            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
-            return False
-        return True
 
     def request(self, context):
         forget_deleted()  # a cage or mesh deleted since the last update is gone

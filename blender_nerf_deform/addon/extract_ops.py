@@ -18,7 +18,7 @@ from .cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY, EMBE
                          set_triangles)
 from .jobs import WorkerOperator
 from .nerf_ops import checkpoint_path
-from .properties import alive, alive_object, forget_deleted, handles_of, owning_nerf, to_nerf_frame
+from .properties import OnNeRF, alive, alive_object, forget_deleted, handles_of, owning_nerf, to_nerf_frame
 from .region_ops import SURFACE_REGION_KEY, edit_regions_of, encode_regions, regions_of
 from .frame_render import srgb_to_linear
 
@@ -27,54 +27,50 @@ CUT_ATTRIBUTE = "NeRF Cut"
 PART_ATTRIBUTE = "NeRF Part"
 
 
+def _set_point_values(mesh: bpy.types.Mesh, name: str, data_type: str, dtype, values, what: str) -> None:
+    """One value per vertex as the point attribute `name` (replaced; None: removed), checked first,
+    so a bad call leaves the old attribute as it was."""
+    if values is not None:
+        values = np.asarray(values).astype(dtype)
+        if values.shape != (len(mesh.vertices),):
+            raise ValueError(f"{len(values)} {what} for a mesh of {len(mesh.vertices)} vertices")
+    if (old := mesh.attributes.get(name)) is not None:
+        mesh.attributes.remove(old)
+    if values is not None:
+        mesh.attributes.new(name, data_type, "POINT").data.foreach_set("value", values)
+
+
+def _point_values(mesh: bpy.types.Mesh, name: str, data_type: str, dtype) -> np.ndarray | None:
+    """The point attribute `name` (one value per vertex), or None when the mesh has none (made
+    elsewhere, or by an older version) or it is not one `data_type` value per vertex."""
+    attribute = mesh.attributes.get(name)
+    if (attribute is None or attribute.domain != "POINT" or attribute.data_type != data_type
+            or len(attribute.data) != len(mesh.vertices)):  # (in Edit Mode the mesh's data is not in sync)
+        return None
+    values = np.zeros(len(mesh.vertices), dtype=dtype)
+    attribute.data.foreach_get("value", values)
+    return values
+
+
 def set_cut_flags(mesh: bpy.types.Mesh, cut: np.ndarray | None) -> None:
     """The cut flags (one per vertex) as the BOOLEAN point attribute CUT_ATTRIBUTE; none: removed."""
-    if cut is not None:
-        cut = np.asarray(cut).astype(bool)
-        if cut.shape != (len(mesh.vertices),):
-            raise ValueError(f"{len(cut)} cut flags for a mesh of {len(mesh.vertices)} vertices")
-    if (old := mesh.attributes.get(CUT_ATTRIBUTE)) is not None:
-        mesh.attributes.remove(old)
-    if cut is None:
-        return
-    mesh.attributes.new(CUT_ATTRIBUTE, "BOOLEAN", "POINT").data.foreach_set("value", cut)
+    _set_point_values(mesh, CUT_ATTRIBUTE, "BOOLEAN", bool, cut, "cut flags")
 
 
 def cut_flags(mesh: bpy.types.Mesh) -> np.ndarray | None:
-    """The mesh's cut flags (bool per vertex), or None when it has none (made elsewhere, or by an
-    older version) or its attribute is not one flag per vertex."""
-    attribute = mesh.attributes.get(CUT_ATTRIBUTE)
-    if attribute is None or attribute.domain != "POINT" or attribute.data_type != "BOOLEAN":
-        return None
-    flags = np.zeros(len(mesh.vertices), dtype=bool)
-    attribute.data.foreach_get("value", flags)
-    return flags
+    """The mesh's cut flags (bool per vertex), or None (see `_point_values`)."""
+    return _point_values(mesh, CUT_ATTRIBUTE, "BOOLEAN", bool)
 
 
 def set_part_labels(mesh: bpy.types.Mesh, part: np.ndarray | None) -> None:
     """The part of each vertex (the index of the edit region it was extracted in; also on a cage,
     the part of each cage vertex) as the INT point attribute PART_ATTRIBUTE; none: removed."""
-    if part is not None:
-        part = np.asarray(part).astype(np.int32)
-        if part.shape != (len(mesh.vertices),):
-            raise ValueError(f"{len(part)} part labels for a mesh of {len(mesh.vertices)} vertices")
-    if (old := mesh.attributes.get(PART_ATTRIBUTE)) is not None:
-        mesh.attributes.remove(old)
-    if part is None:
-        return
-    mesh.attributes.new(PART_ATTRIBUTE, "INT", "POINT").data.foreach_set("value", part)
+    _set_point_values(mesh, PART_ATTRIBUTE, "INT", np.int32, part, "part labels")
 
 
 def part_labels(mesh: bpy.types.Mesh) -> np.ndarray | None:
-    """The mesh's part labels (int per vertex), or None when it has none (made elsewhere, or by an
-    older version) or its attribute is not one integer per vertex."""
-    attribute = mesh.attributes.get(PART_ATTRIBUTE)
-    if (attribute is None or attribute.domain != "POINT" or attribute.data_type != "INT"
-            or len(attribute.data) != len(mesh.vertices)):  # (in Edit Mode the mesh's data is not in sync)
-        return None
-    labels = np.zeros(len(mesh.vertices), dtype=np.int32)
-    attribute.data.foreach_get("value", labels)
-    return labels
+    """The mesh's part labels (int per vertex), or None (see `_point_values`)."""
+    return _point_values(mesh, PART_ATTRIBUTE, "INT", np.int32)
 
 
 def fill_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
@@ -97,19 +93,12 @@ def forget_cage_data(surface: bpy.types.Object) -> None:
         surface.shape_key_clear()
 
 
-class NERFDEFORM_OT_extract_mesh(WorkerOperator, bpy.types.Operator):
+class NERFDEFORM_OT_extract_mesh(WorkerOperator, OnNeRF, bpy.types.Operator):
     """Extract the NeRF's surface (marching cubes at the density threshold), drop small floaters, and import it"""
 
     bl_idname = "nerf_deform.extract_mesh"
     bl_label = "Extract Mesh"
     bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        if owning_nerf(context.active_object) is None:
-            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
-            return False
-        return True
 
     def request(self, context):
         forget_deleted()  # a cage or handle deleted since the last update is gone

@@ -14,7 +14,7 @@ import bmesh  # noqa: I001
 import numpy as np
 from mathutils import Matrix
 
-from .properties import PIN_GROUP, alive, handles_of, owning_nerf, select_only, to_nerf_frame
+from .properties import OnNeRF, PIN_GROUP, alive, handles_of, owning_nerf, select_only, to_nerf_frame
 
 
 def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
@@ -210,19 +210,12 @@ class NERFDEFORM_OT_remove_handle(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NERFDEFORM_OT_reset_pose(bpy.types.Operator):
+class NERFDEFORM_OT_reset_pose(OnNeRF, bpy.types.Operator):
     """Move every handle of the active NeRF back to where it was made"""
 
     bl_idname = "nerf_deform.reset_pose"
     bl_label = "Reset Pose"
     bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        if owning_nerf(context.active_object) is None:
-            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
-            return False
-        return True
 
     def execute(self, context):
         nerf = owning_nerf(context.active_object)

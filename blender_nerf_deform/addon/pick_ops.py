@@ -17,11 +17,11 @@ from mathutils import Vector
 
 from .jobs import worker
 from .nerf_ops import checkpoint_path
-from .properties import owning_nerf, to_nerf_frame
+from .properties import OnNeRF, owning_nerf, to_nerf_frame
 from .worker_client import WorkerError
 
 
-class NERFDEFORM_OT_place_cursor_on_nerf(bpy.types.Operator):
+class NERFDEFORM_OT_place_cursor_on_nerf(OnNeRF, bpy.types.Operator):
     """Click on the NeRF in the viewport: the 3D cursor goes where the ray first meets its surface (the pick point of "Pick at 3D Cursor")"""
 
     bl_idname = "nerf_deform.place_cursor_on_nerf"
@@ -30,13 +30,6 @@ class NERFDEFORM_OT_place_cursor_on_nerf(bpy.types.Operator):
 
     origin: FloatVectorProperty(name="Ray Origin", size=3, description="World-space start of the ray (scripts)")
     direction: FloatVectorProperty(name="Ray Direction", size=3, description="World-space direction of the ray (scripts)")
-
-    @classmethod
-    def poll(cls, context):
-        if owning_nerf(context.active_object) is None:
-            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
-            return False
-        return True
 
     def execute(self, context):
         nerf = owning_nerf(context.active_object)

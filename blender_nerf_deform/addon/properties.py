@@ -150,6 +150,18 @@ def owning_nerf(obj: bpy.types.Object | None) -> bpy.types.Object | None:
     return None
 
 
+class OnNeRF:
+    """Operator mixin: runs on the active object's NeRF (the NeRF object itself, its mesh, cage,
+    handles or regions); the poll says so otherwise."""
+
+    @classmethod
+    def poll(cls, context):
+        if owning_nerf(context.active_object) is None:
+            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
+            return False
+        return True
+
+
 def select_only(context, obj: bpy.types.Object) -> None:
     """Make `obj` the one selected and active object (ready for its gizmos)."""
     for other in context.selected_objects:

@@ -32,7 +32,7 @@ import numpy as np
 from mathutils import Matrix, Vector
 
 from ..engine.geometry.region import region_from_dict
-from .properties import alive, owning_nerf, select_only, to_nerf_frame
+from .properties import OnNeRF, alive, owning_nerf, select_only, to_nerf_frame
 
 REGION_DISPLAY_SIZE = 0.5  # a new region's Scale is its size
 # The regions a surface was extracted with (JSON list of REGION dicts, in the order of its parts;
@@ -153,19 +153,12 @@ def default_placement(nerf: bpy.types.Object, cursor_world, others: list[dict] =
     return 0.5 * (lo + hi), hi - lo, "over the NeRF's whole box"
 
 
-class NERFDEFORM_OT_add_edit_region(bpy.types.Operator):
+class NERFDEFORM_OT_add_edit_region(OnNeRF, bpy.types.Operator):
     """Add a box that limits extraction and the cage to an object being edited (around the 3D cursor when it is in the NeRF's box); each region's object gets its own cage"""
 
     bl_idname = "nerf_deform.add_edit_region"
     bl_label = "Add Edit Region"
     bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        if owning_nerf(context.active_object) is None:
-            cls.poll_message_set("Select a NeRF object, or its mesh, cage or handles")
-            return False
-        return True
 
     def execute(self, context):
         nerf = owning_nerf(context.active_object)
