@@ -111,6 +111,11 @@ def _cage_file(tmp: Path, **arrays) -> Path:
     return path
 
 
+def _cage_arrays(base) -> dict:
+    with np.load(base["cage"]) as z:
+        return {"vertices": z["vertices"], "tets": z["tets"]}
+
+
 def _available_memory() -> int:
     from blender_nerf_deform.engine.geometry.extract import available_memory
 
@@ -318,6 +323,10 @@ CASES = {
                                                       ("lies outside the NeRF's box",), ["m.ply"]),
     "extract --region with nothing dense": lambda b, t: (_extract_in(b, t, UNIT_REGION, "--threshold", "1e30"),
                                                          ("largest density", "region centred at (0, 0, 0)"), ["m.ply"]),
+    "extract --region size of the wrong type": lambda b, t: (_extract_in(b, t, {**UNIT_REGION, "size": "big"}),
+                                                           ("region.json", "`size` must be a list of three numbers"), ["m.ply"]),
+    "cage pinned_vertices out of range": lambda b, t: (_bent(b, t, _cage_file(t, **_cage_arrays(b), pinned_vertices=np.array([0, 10**6]))),
+                                                       ("bad_cage.npz", "pinned_vertices"), ["frames"]),
     "extract --pick nan": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--pick", "nan", "0", "0"],
                                         ("--pick", "nan"), ["m.ply"]),
     "cage --region not JSON": lambda b, t: (_cage_cmd(b, t, None, "--region", _region_file(t, "[1, 2")),
