@@ -1,7 +1,8 @@
-"""Add-on preferences: which Python (one that has torch) runs the engine worker."""
+"""Add-on preferences: which Python (one that has torch) runs the engine worker, and how
+"Set Up Worker" (worker_setup.py) makes one."""
 
 import bpy
-from bpy.props import StringProperty
+from bpy.props import EnumProperty, StringProperty
 
 # The extension's top-level package: `bl_ext.<repo>.blender_nerf_deform` when
 # enabled as an extension, `blender_nerf_deform` when imported directly.
@@ -14,23 +15,53 @@ class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
     worker_python: StringProperty(
         name="Worker Python",
         description="Python interpreter with torch installed that runs the NeRF engine "
-        "(extraction, cage building, ARAP solves and rendering) in a separate process",
+        "(extraction, cage building, ARAP solves and rendering) in a separate process; "
+        "Set Up Worker makes one and sets it here",
         subtype="FILE_PATH",
         default="",
     )
+    worker_build: EnumProperty(
+        name="Build",
+        items=(("CPU", "CPU", "torch for the CPU (smaller download)"),
+               ("CUDA", "CUDA", "torch with CUDA, for an NVIDIA GPU")),
+        default="CPU",
+    )
+    torch_source: EnumProperty(
+        name="Torch Source",
+        items=(("AUTO", "PyTorch Index", "PyTorch's own index for the chosen build where PyPI's torch is another build "
+                                         "(CPU on Linux and Windows, CUDA on Windows), else PyPI"),
+               ("PIP", "pip's Configuration", "The index or mirror pip is configured with, as for every other package"),
+               ("CUSTOM", "Custom Index", "The index URL below")),
+        default="AUTO",
+    )
+    torch_index_url: StringProperty(name="Torch Index", description="Package index URL that torch is installed from")
+    base_python: StringProperty(
+        name="Base Python", subtype="FILE_PATH", default="",
+        description="Python 3.11 the worker environment is made from (empty: Blender's own when it is 3.11, "
+                    "else a python3.11 found on the system)",
+    )
 
     def draw(self, context):
+        from . import worker_setup
+
         layout = self.layout
         layout.prop(self, "worker_python")
-        layout.label(text="A Python 3.11 with torch (CPU or CUDA); see the README.")
+        layout.label(text="A Python 3.11 with torch (CPU or CUDA): set one up below, or see the README.")
+        worker_setup.draw_setup(layout, context)
+
+
+def addon_preferences(context=None):
+    """The add-on's preferences, or None when it was imported directly rather than enabled."""
+    context = context or bpy.context
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
+    return addon.preferences if addon is not None else None
 
 
 def worker_python(context=None) -> str:
     """The Worker Python preference ("" when unset, or when the add-on was imported
     directly rather than enabled, so it has no preferences)."""
-    context = context or bpy.context
-    addon = context.preferences.addons.get(ADDON_PACKAGE)
-    return addon.preferences.worker_python if addon is not None else ""
+    prefs = addon_preferences(context)
+    return prefs.worker_python if prefs is not None else ""
 
 
 _classes = (NERFDEFORM_AddonPreferences,)
