@@ -103,10 +103,7 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
         from gpu_extras.presets import draw_texture_2d
 
         if self._texture is None or self._texture[0] != viewport.image_version:
-            height, width = viewport.image.shape[:2]
-            pixels = np.ascontiguousarray(viewport.image[::-1], dtype=np.float32).ravel()
-            buffer = gpu.types.Buffer("FLOAT", pixels.size, pixels)
-            self._texture = (viewport.image_version, gpu.types.GPUTexture((width, height), format="RGBA16F", data=buffer))
+            self._texture = (viewport.image_version, image_texture(viewport.image))
         region = context.region
         # Premultiplied scene-linear pixels, stretched over the region (coarse steps are smaller).
         gpu.state.blend_set("ALPHA_PREMULT")
@@ -114,6 +111,15 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
         draw_texture_2d(self._texture[1], (0, 0), region.width, region.height)
         self.unbind_display_space_shader()
         gpu.state.blend_set("NONE")
+
+
+def image_texture(image: np.ndarray):
+    """A GPU texture of an (H, W, 4) image whose first row is the top one (GPU textures start at the bottom)."""
+    import gpu
+
+    height, width = image.shape[:2]
+    pixels = np.ascontiguousarray(image[::-1], dtype=np.float32).ravel()
+    return gpu.types.GPUTexture((width, height), format="RGBA16F", data=gpu.types.Buffer("FLOAT", pixels.size, pixels))
 
 
 # Blender's own properties panels that make sense for this engine: output format,

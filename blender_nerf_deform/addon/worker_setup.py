@@ -71,11 +71,11 @@ class SetupCancelled(Exception):
     pass
 
 
-def user_folder() -> Path:
+def user_folder(create: bool = True) -> Path:
     """Where the environment goes: the extension's user folder (a temporary one when the add-on was
     imported directly rather than enabled as an extension, which has no user folder)."""
     try:
-        return Path(bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, create=True))
+        return Path(bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, create=create))
     except (ValueError, AttributeError):
         import tempfile
 
@@ -385,7 +385,7 @@ def running_job() -> SetupJob | None:
 
 
 def existing_environment() -> Path | None:
-    env = user_folder() / ENV_NAME
+    env = user_folder(create=False) / ENV_NAME
     return env if env_python(env).exists() else None
 
 

@@ -278,3 +278,47 @@ def test_a_failing_nerf_shows_its_error_in_the_view(addon, sphere_nerf, tmp_path
     assert _pump(viewport, client) == "failed"
     assert viewport.image is None
     assert "does not exist" in viewport.status and viewport.status.startswith("NeRF Deform: ")
+
+
+def _gpu_available(bpy) -> bool:
+    import gpu
+
+    try:
+        gpu.types.GPUOffScreen(4, 4).free()
+    except SystemError:  # the bpy module in background mode has no GPU context
+        return False
+    return True
+
+
+def test_the_viewport_texture_draws_the_image_upright(addon):
+    """view_draw's texture, drawn as view_draw draws it, reads back as the image (top row on top).
+    Needs a GPU context: Blender with a window, or a GPU build; the bpy module headless has none."""
+    bpy = addon
+    if not _gpu_available(bpy):
+        pytest.skip("no GPU context in this Blender (the bpy module in background mode)")
+    import gpu
+    from gpu_extras.presets import draw_texture_2d
+    from mathutils import Matrix
+
+    from blender_nerf_deform.addon.render_engine import image_texture
+
+    h, w = 12, 20
+    image = np.zeros((h, w, 4), np.float32)
+    image[..., 0] = np.linspace(0, 1, w)[None, :]
+    image[..., 1] = np.linspace(1, 0, h)[:, None]  # green at the top row
+    image[..., 3] = 1.0
+    offscreen = gpu.types.GPUOffScreen(w, h, format="RGBA16F")
+    try:
+        with offscreen.bind():
+            fb = gpu.state.active_framebuffer_get()
+            fb.clear(color=(0.0, 0.0, 0.0, 0.0))
+            with gpu.matrix.push_pop():
+                gpu.matrix.load_matrix(Matrix.Identity(4))
+                gpu.matrix.load_projection_matrix(Matrix.Identity(4))
+                gpu.matrix.translate((-1.0, -1.0))
+                gpu.matrix.scale((2.0 / w, 2.0 / h))
+                draw_texture_2d(image_texture(image), (0, 0), w, h)
+            read = np.array(fb.read_color(0, 0, w, h, 4, 0, "FLOAT").to_list(), np.float32).reshape(h, w, 4)
+    finally:
+        offscreen.free()
+    assert np.allclose(read[::-1], image, atol=2e-3)  # framebuffer rows run bottom-up
