@@ -63,3 +63,22 @@ class Camera:
         """NeRF-synthetic camera: square pixels, focal from the horizontal field of view, centred."""
         f = 0.5 * width / math.tan(0.5 * camera_angle_x)
         return cls(np.asarray(c2w, dtype=np.float64), f, f, width / 2.0, height / 2.0, int(width), int(height), name)
+
+    @classmethod
+    def looking_at_box(cls, aabb, width: int, height: int, direction=(0.65, -0.61, 0.44), fov_deg: float = 40.0,
+                       name: str = "box view") -> "Camera":
+        """A camera looking at the centre of a box ((2,3): low, high corners) from `direction` (by default
+        where Blender's default camera stands: front right, above), Z up, just far enough that the
+        box's bounding sphere fills the shorter image side of a `fov_deg` view."""
+        lo, hi = np.asarray(aabb, dtype=np.float64).reshape(2, 3)
+        centre, radius = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-6)
+        half = math.radians(fov_deg) / 2
+        back = np.asarray(direction, dtype=np.float64)
+        back = back / np.linalg.norm(back)
+        right = np.cross((0.0, 0.0, 1.0), back)
+        right = right / np.linalg.norm(right)
+        c2w = np.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2] = right, np.cross(back, right), back
+        c2w[:3, 3] = centre + back * radius / math.sin(half)
+        f = 0.5 * min(width, height) / math.tan(half)
+        return cls(c2w, f, f, width / 2.0, height / 2.0, int(width), int(height), name)

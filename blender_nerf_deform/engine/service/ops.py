@@ -17,7 +17,16 @@ modification time; cages, embeddings and regions live in the worker session
                                           pinned at the regions' cuts
     train    data, out [steps, max_seconds, device, downscale, resume, overwrite, scene]
                                           a NeRF trained into out/nerf.ckpt, with progress;
-                                          cancelling keeps the checkpoint
+                                          cancelling keeps the checkpoint; answers the
+                                          training_preview requests of its run between steps
+    training_preview  checkpoint, camera (or null + size [w, h]: a view of the NeRF's box)
+                                          a small frame of a run: of the model being trained
+                                          when its training runs (a side op, answered between
+                                          steps), else of the checkpoint file
+    prepare  images, out [matcher, max_size, seed]
+                                          photos -> a transforms.json dataset in out by structure
+                                          from motion, with progress; cancel stops pycolmap
+                                          midway and leaves nothing written
     first_surface  checkpoint, origin, direction [threshold]
                                           where a ray first meets the density (a click's pick)
     solve    shared cage/embedding/regions, mode, transforms, answer
@@ -48,7 +57,7 @@ from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
 from ..nerf.checkpoint import load_nerf
 from ..nerf.model import device_summary
-from .registry import Job, op
+from .registry import Cancelled, Job, op
 from .session import SESSION
 
 _models: dict[tuple[str, str], tuple[float, object]] = {}
@@ -134,8 +143,13 @@ def train(job: Job) -> dict:
             raise EngineError(f"train needs `{key}`, a folder path")
     steps, seconds = p.get("steps"), p.get("max_seconds")
     last = [0.0]
+    checkpoint = _same_path_key(os.path.join(p["out"], "nerf.ckpt"))
+
+    def ours(side: Job) -> bool:  # a preview of this run
+        return isinstance(side.params.get("checkpoint"), str) and _same_path_key(side.params["checkpoint"]) == checkpoint
 
     def report(trainer):
+        job.serve_side_requests(lambda side: _training_preview_of(side, trainer))
         now = time.perf_counter()
         if now - last[0] < PROGRESS_EVERY_S:
             return
@@ -152,12 +166,120 @@ def train(job: Job) -> dict:
                    (f", about {left:.0f} s left" if left == left else ""))
         job.worker.send({"type": "progress", "id": job.id, "fraction": fraction, "message": message})
 
-    summary = run_training(p["data"], p["out"], max_seconds=seconds, steps=steps, device=p.get("device", "auto"),
-                           downscale=int(p.get("downscale", 1)), resume=bool(p.get("resume")),
-                           overwrite=bool(p.get("overwrite")), progress=False, callback=report,
-                           should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"))
+    with job.serving_side_requests(ours):
+        summary = run_training(p["data"], p["out"], max_seconds=seconds, steps=steps, device=p.get("device", "auto"),
+                               downscale=int(p.get("downscale", 1)), resume=bool(p.get("resume")),
+                               overwrite=bool(p.get("overwrite")), progress=False, callback=report,
+                               should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"))
     keep = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height")
     return {**{k: summary[k] for k in keep if k in summary}, "cancelled": job.cancel_event.is_set()}
+
+
+def _same_path_key(path: str) -> str:
+    return os.path.normcase(os.path.realpath(os.path.abspath(path)))
+
+
+PREVIEW_MAX_SIDE = 1024  # a preview is small: the training waits while it renders
+
+
+def _preview_camera(p: dict, aabb) -> Camera:
+    """The preview's camera: the request's (a pinhole in the NeRF's frame), or with `camera` null a
+    view of the NeRF's box (`Camera.looking_at_box`) of `size` [width, height]."""
+    cam = p.get("camera")
+    if cam is None:
+        size = p.get("size")
+        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                                  for v in size)):
+            raise EngineError(f"training_preview without a camera needs `size`, [width, height] in pixels, got {size!r}")
+        camera = Camera.looking_at_box(np.asarray(aabb, dtype=np.float64).reshape(2, 3), size[0], size[1])
+    elif isinstance(cam, dict):
+        camera = _camera(cam)
+    else:
+        raise EngineError(f"training_preview: `camera` must be a camera (a dict) or null for a view of the NeRF's box, "
+                          f"got {type(cam).__name__}")
+    if not (1 <= camera.width <= PREVIEW_MAX_SIDE and 1 <= camera.height <= PREVIEW_MAX_SIDE):
+        raise EngineError(f"a training preview is at most {PREVIEW_MAX_SIDE}x{PREVIEW_MAX_SIDE} pixels, got "
+                          f"{camera.width}x{camera.height}")
+    if not (np.isfinite(camera.c2w).all() and all(np.isfinite(v) and v != 0 for v in (camera.fx, camera.fy))):
+        raise EngineError("bad camera in the training preview: its matrix or focal lengths are not finite non-zero numbers")
+    return camera
+
+
+def _preview_frame(job: Job, model, camera: Camera, stats: dict) -> tuple[dict, dict]:
+    out = PosedRenderer(model).render(camera, None, progress=lambda done, total: job.progress(done / total, "rendering the preview"))
+    stats.update(width=camera.width, height=camera.height,
+                 **{k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
+    return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}
+
+
+def _checked_preview(p: dict) -> str:
+    if not isinstance(p.get("checkpoint"), str) or not p["checkpoint"]:
+        raise EngineError(f"training_preview needs `checkpoint`, the path of the run's nerf.ckpt, got {p.get('checkpoint')!r}")
+    if "camera" not in p:
+        raise EngineError("training_preview needs `camera`: a camera (a dict), or null for a view of the NeRF's box")
+    return p["checkpoint"]
+
+
+def _training_preview_of(side: Job, trainer) -> tuple[dict, dict]:
+    """A preview of the model being trained, between two steps: eval mode and no gradients (render_image),
+    the random state and the optimizer untouched, so the training goes on exactly as without it."""
+    import torch
+
+    _checked_preview(side.params)
+    model = trainer.model
+    camera = _preview_camera(side.params, model.aabb.detach().cpu().numpy())
+    was = model.training
+    devices = [model.device] if model.device.type == "cuda" else []
+    model.eval()
+    try:
+        with torch.random.fork_rng(devices=devices):
+            psnr = trainer.last.get("psnr") if trainer.last else None
+            return _preview_frame(side, model, camera, {"source": "training", "step": trainer.step_count,
+                                                        "seconds": trainer.elapsed, "psnr": psnr})
+    finally:
+        model.train(was)
+
+
+@op("training_preview", side=True)
+def training_preview(job: Job) -> tuple[dict, dict]:
+    """A small frame of a training run. While the run's training runs in this worker, that training
+    answers it between steps with the model as it is (`_training_preview_of`); otherwise (the
+    training ended, or runs elsewhere) it renders the run's checkpoint file."""
+    path = _checked_preview(job.params)
+    if not os.path.isfile(path):
+        raise EngineError(f"no training of {os.path.dirname(path) or path} runs in this worker and {path} does not "
+                          "exist yet: start the training, or wait for its first checkpoint")
+    model = cached_model(path, job.params.get("device", "auto"))
+    camera = _preview_camera(job.params, model.aabb.detach().cpu().numpy())
+    return _preview_frame(job, model, camera, {"source": "checkpoint", "checkpoint": path})
+
+
+@op("prepare")
+def prepare_photos(job: Job) -> dict:
+    """Photos -> a transforms.json dataset by structure from motion, as the `prepare` command does, with
+    progress per stage (features, matching, mapping: each photo registered). Cancelling stops pycolmap
+    midway (its cancellation token) and removes the work folder: nothing is written."""
+    from ..sfm.prepare import MATCHERS, PrepareCancelled, prepare
+
+    p = job.params
+    for key in ("images", "out"):
+        if not isinstance(p.get(key), str) or not p[key]:
+            raise EngineError(f"prepare needs `{key}`, a folder path, got {p.get(key)!r}")
+    matcher = p.get("matcher", "exhaustive")
+    if matcher not in MATCHERS:
+        raise EngineError(f"prepare: `matcher` must be one of {', '.join(MATCHERS)}, got {matcher!r}")
+    options = {}
+    for key, default in (("max_size", 1600), ("seed", 0)):
+        value = p.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise EngineError(f"prepare: `{key}` must be an integer, got {value!r}")
+        options[key] = value
+    try:
+        summary = prepare(p["images"], p["out"], matcher=matcher, log=lambda line: print(line, file=sys.stderr),
+                          progress=job.progress, should_stop=job.cancel_event.is_set, **options)
+    except PrepareCancelled:
+        raise Cancelled() from None
+    return {**summary, "dataset": p["out"]}
 
 
 @op("first_surface")

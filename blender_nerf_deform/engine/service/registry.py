@@ -2,12 +2,21 @@
 
 Apart from `worker.py` so that the handlers (`ops.py`) and the process loop
 import it without importing each other.
+
+Side requests: the worker runs one request at a time, but a long one (training) can
+answer small requests while it runs. An op registered with `side=True` (SIDE_OPS) is a
+side op: when the running job opened `serving_side_requests` and accepts it, the worker's
+reader hands it to that job's queue instead of the main one; the job answers it between
+its own steps (`serve_side_requests`), and what it did not answer when the block ends goes
+to the main queue, where the op's own handler runs it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import queue
 import threading
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Iterator
 
 from ..errors import EngineError
 
@@ -37,6 +46,31 @@ class Job:
         self.params = params
         self.arrays = arrays
         self.cancel_event = threading.Event()
+        self.side_requests: queue.Queue[Job] | None = None  # open while the job serves side requests
+        self.accepts_side: Callable[[Job], bool] | None = None
+
+    @contextlib.contextmanager
+    def serving_side_requests(self, accepts: Callable[["Job"], bool]) -> Iterator[None]:
+        """While the block runs, the worker hands this job the side requests that `accepts(side_job)`
+        takes; those still queued when it ends go to the worker's main queue."""
+        self.worker.open_side_requests(self, accepts)
+        try:
+            yield
+        finally:
+            self.worker.close_side_requests(self)
+
+    def serve_side_requests(self, handler: "Handler") -> int:
+        """Answer the side requests queued so far with `handler(side_job)`; each answer (or error)
+        goes out with the side request's id. Returns how many were answered."""
+        served = 0
+        while self.side_requests is not None:
+            try:
+                side = self.side_requests.get_nowait()
+            except queue.Empty:
+                break
+            self.worker.run(side, handler)
+            served += 1
+        return served
 
     def progress(self, fraction: float, message: str = "") -> None:
         """Report progress; raises Cancelled if the client asked to cancel this request."""
@@ -47,13 +81,16 @@ class Job:
 
 Handler = Callable[[Job], "tuple[dict, dict[str, np.ndarray]] | dict"]
 HANDLERS: dict[str, Handler] = {}
+SIDE_OPS: set[str] = set()
 
 
-def op(name: str) -> Callable[[Handler], Handler]:
-    """Register a handler for requests of kind `name`."""
+def op(name: str, side: bool = False) -> Callable[[Handler], Handler]:
+    """Register a handler for requests of kind `name`; `side`: a side op (see the module docstring)."""
 
     def register(fn: Handler) -> Handler:
         HANDLERS[name] = fn
+        if side:
+            SIDE_OPS.add(name)
         return fn
 
     return register

@@ -5,7 +5,10 @@
 Reads requests from stdin and answers on stdout in the format of
 `protocol.py`; everything the engine prints (tqdm, warnings) goes to stderr,
 which the add-on forwards to Blender's console. One request runs at a time;
-a cancel for the running request stops it at its next progress report.
+a cancel for the running request stops it at its next progress report. A side
+request (an op registered as a side op, such as `training_preview`) is handed
+to the running job instead when that job serves side requests and accepts it
+(a training renders its current model between steps): registry.py.
 
 Messages, client → worker:
     {"type": "request", "id": n, "op": "<op>", "params": {...}} + arrays
@@ -40,7 +43,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from ..errors import EngineError
 from .protocol import ProtocolError, read_message, write_message
-from .registry import HANDLERS, Cancelled, Job, Missing
+from .registry import HANDLERS, SIDE_OPS, Cancelled, Handler, Job, Missing
 
 if TYPE_CHECKING:
     import numpy as np
@@ -54,6 +57,8 @@ class Worker:
         self._jobs: queue.Queue[Job | None] = queue.Queue()
         self._current: Job | None = None
         self._pending: dict[int, Job] = {}
+        # Guards the running job's side-request queue: the reader's check-and-put against its closing.
+        self._side_lock = threading.Lock()
 
     def send(self, header: dict, arrays: dict[str, np.ndarray] | None = None) -> None:
         with self._send_lock:
@@ -68,7 +73,8 @@ class Worker:
                 if kind == "request":
                     job = Job(self, header["id"], header.get("op"), header.get("params", {}), arrays)
                     self._pending[job.id] = job
-                    self._jobs.put(job)
+                    if not self._hand_to_running(job):
+                        self._jobs.put(job)
                 elif kind == "cancel":
                     job = self._pending.get(header.get("id"))
                     if job is not None:
@@ -83,8 +89,37 @@ class Worker:
                 job.cancel_event.set()
             self._jobs.put(None)
 
-    def _run(self, job: Job) -> None:
-        handler = HANDLERS.get(job.op)
+    def _hand_to_running(self, job: Job) -> bool:
+        """Queue a side request with the running job when it serves side requests and accepts this one."""
+        if job.op not in SIDE_OPS:
+            return False
+        with self._side_lock:
+            running = self._current
+            if running is None or running.side_requests is None or running.accepts_side is None:
+                return False
+            try:
+                accepted = bool(running.accepts_side(job))
+            except Exception:  # a malformed request: its own handler will say what is wrong with it
+                accepted = False
+            if accepted:
+                running.side_requests.put(job)
+            return accepted
+
+    def open_side_requests(self, job: Job, accepts) -> None:
+        with self._side_lock:
+            job.accepts_side = accepts
+            job.side_requests = queue.Queue()
+
+    def close_side_requests(self, job: Job) -> None:
+        """The job stops serving side requests: the ones it did not answer go to the main queue."""
+        with self._side_lock:
+            left, job.side_requests, job.accepts_side = job.side_requests, None, None
+        while left is not None and not left.empty():
+            self._jobs.put(left.get_nowait())
+
+    def run(self, job: Job, handler: Handler | None = None) -> None:
+        """Run `job` with `handler` (default: its op's) and send its answer or error with its id."""
+        handler = handler or HANDLERS.get(job.op)
         try:
             if job.cancel_event.is_set():
                 raise Cancelled()
@@ -115,7 +150,13 @@ class Worker:
     def serve(self) -> int:
         threading.Thread(target=self._read_requests, name="worker-reader", daemon=True).start()
         while (job := self._jobs.get()) is not None:
-            self._run(job)
+            with self._side_lock:
+                self._current = job
+            try:
+                self.run(job)
+            finally:
+                with self._side_lock:
+                    self._current = None
         return 0
 
 

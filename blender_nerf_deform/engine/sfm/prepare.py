@@ -11,7 +11,13 @@ mode) with the OPENCV model (focal lengths, principal point, k1 k2 p1 p2), which
 the dataset loader turns into rays through the distorted pixels. The result is
 oriented by `orient.py` and written, with the photos it registered, into a
 temporary folder beside the destination that is renamed at the end: a failed or
-interrupted run leaves nothing under DATASET_DIR.
+interrupted run leaves nothing under DATASET_DIR (nor the parent folders it made).
+
+Progress and cancelling (the worker's `prepare` op, Blender's Import Photos):
+`progress(fraction, message)` is called as each stage starts and as the mapping
+registers each photo; it may raise to stop the run between stages. `should_stop()`
+is polled while pycolmap works and stops it midway through its cancellation token
+(features, matching and mapping all take one); the run then raises PrepareCancelled.
 """
 
 from __future__ import annotations
@@ -20,8 +26,11 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -32,6 +41,41 @@ from .orient import apply_to_cameras, orientation
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG"}
 MATCHERS = ("exhaustive", "sequential")
+# Where each stage starts in the progress fraction (14 photos of 320x240 on 2 cores: features 0.9 s,
+# matching 1.1 s, mapping 2.2 s).
+STAGE_START = {"features": 0.0, "matching": 0.2, "mapping": 0.45, "writing": 0.95}
+
+
+class PrepareCancelled(Exception):
+    """`should_stop()` asked the run to stop; nothing was written."""
+
+
+@contextmanager
+def _cancellation(pycolmap, should_stop: Callable[[], bool] | None, poll_s: float = 0.1):
+    """A pycolmap CancellationToken that a watcher thread cancels once `should_stop()` says so."""
+    token = pycolmap.CancellationToken()
+    if should_stop is None:
+        yield token
+        return
+    done = threading.Event()
+
+    def watch():
+        while not done.wait(poll_s):
+            if should_stop():
+                token.cancel()
+                return
+
+    watcher = threading.Thread(target=watch, name="prepare-cancel", daemon=True)
+    watcher.start()
+    try:
+        yield token
+    except InterruptedError:
+        if token.is_cancelled:
+            raise PrepareCancelled() from None
+        raise
+    finally:
+        done.set()
+        watcher.join()
 
 
 def photos_in(folder: Path) -> list[str]:
@@ -69,10 +113,12 @@ def transforms_for(cameras: list[dict], image_folder: str = "images") -> dict:
 
 
 def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "exhaustive", max_size: int = 1600,
-            seed: int = 0, log=print) -> dict:
+            seed: int = 0, log=print, progress: Callable[[float, str], None] | None = None,
+            should_stop: Callable[[], bool] | None = None) -> dict:
     """Run structure from motion on the photos in `images`, write `out`/transforms.json + `out`/images/.
 
     Returns a summary: registered and unregistered photos, timings, the camera model found.
+    `progress` and `should_stop`: the module docstring.
     """
     import pycolmap
 
@@ -85,31 +131,55 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
     if dst.exists() and (not dst.is_dir() or any(dst.iterdir())):
         raise EngineError(f"--out {dst}: exists and is not an empty folder; choose a new one")
     check_writable(dst.parent, folder=True)  # the work folder is made beside the destination
+    made = [d for d in (dst.parent, *dst.parent.parents) if not d.exists()]  # deepest first
     dst.parent.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     work = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent))
+
+    def stage(name: str, message: str) -> None:
+        log(f"prepare: {message}")
+        if progress is not None:
+            progress(STAGE_START[name], message)
+
+    registered_so_far = [0]
+
+    def next_image() -> None:  # called by pycolmap's mapper (C++): must not raise
+        registered_so_far[0] += 1
+        if progress is not None:
+            span = STAGE_START["writing"] - STAGE_START["mapping"]
+            try:
+                progress(STAGE_START["mapping"] + span * min(registered_so_far[0] / len(names), 1.0),
+                         f"mapping: {registered_so_far[0]} of {len(names)} photos placed")
+            except Exception:
+                pass  # a cancel: the token stops the mapper
+
     try:
         database = work / "colmap" / "database.db"
         database.parent.mkdir()
         t0 = time.perf_counter()
-        log(f"prepare: features of {len(names)} photos (SIFT, longest side up to {max_size} px)")
+        stage("features", f"features of {len(names)} photos (SIFT, longest side up to {max_size} px)")
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "OPENCV"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = int(max_size)
-        pycolmap.extract_features(database, src, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        with _cancellation(pycolmap, should_stop) as token:
+            pycolmap.extract_features(database, src, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
+                                      cancellation_token=token)
         timings["features_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        log(f"prepare: {matcher} matching")
+        stage("matching", f"{matcher} matching")
         match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
-        match(database, device=pycolmap.Device.cpu)
+        with _cancellation(pycolmap, should_stop) as token:
+            match(database, device=pycolmap.Device.cpu, cancellation_token=token)
         timings["matching_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        log("prepare: incremental mapping (bundle adjustment)")
+        stage("mapping", "incremental mapping (bundle adjustment)")
         options = pycolmap.IncrementalPipelineOptions()
         options.random_seed = int(seed)
-        maps = pycolmap.incremental_mapping(database, src, work / "colmap" / "sparse", options)
+        with _cancellation(pycolmap, should_stop) as token:
+            maps = pycolmap.incremental_mapping(database, src, work / "colmap" / "sparse", options,
+                                                next_image_callback=next_image, cancellation_token=token)
         timings["mapping_s"] = time.perf_counter() - t0
         if not maps:
             raise EngineError(f"structure from motion registered none of the {len(names)} photos in {src}: COLMAP found no "
@@ -129,6 +199,7 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         T = orientation(c2ws, points)
         for c, m in zip(cameras, apply_to_cameras(T, c2ws)):
             c["c2w"] = m
+        stage("writing", f"writing the dataset ({len(cameras)} cameras)")
         (work / "images").mkdir()
         for c in cameras:
             _place(src / c["name"], work / "images" / c["name"])
@@ -145,4 +216,9 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         return summary
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
+        for folder in made:  # the parents this run made, when nothing else went into them
+            try:
+                folder.rmdir()
+            except OSError:
+                break
         raise

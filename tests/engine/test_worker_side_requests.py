@@ -1,0 +1,195 @@
+"""The worker answers side requests while it trains: a training_preview of the running run is
+rendered between training steps (the reader hands it to the train job instead of queueing it
+behind it), without disturbing the training; other previews wait and render the checkpoint file.
+The new ops (training_preview, prepare) refuse hostile params with a clear input error. A real
+worker process on this Python, spoken to through the wire format."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from blender_nerf_deform.engine.service.protocol import read_message, write_message
+from fixtures import REPO
+from fixtures.sfm_scene import write_corner_photos
+from fixtures.sphere_data import write_sphere_dataset
+
+
+class Conversation:
+    """A worker process and the messages it sent, read in order."""
+
+    def __init__(self):
+        self.proc = subprocess.Popen([sys.executable, "-m", "blender_nerf_deform.engine.service.worker"], cwd=REPO,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        hello, _ = read_message(self.proc.stdout)
+        assert hello["type"] == "hello" and "training_preview" in hello["ops"] and "prepare" in hello["ops"]
+        self.log: list[tuple[dict, dict]] = []
+
+    def send(self, header: dict) -> None:
+        write_message(self.proc.stdin, header)
+
+    def request(self, request_id: int, op: str, params: dict) -> None:
+        self.send({"type": "request", "id": request_id, "op": op, "params": params})
+
+    def next(self) -> tuple[dict, dict]:
+        message = read_message(self.proc.stdout)
+        assert message is not None, "the worker ended"
+        self.log.append(message)
+        return message
+
+    def until(self, request_id: int, kinds=("result", "error")) -> tuple[dict, dict]:
+        """Read until a message of `kinds` for `request_id` comes; what came before stays in `log`."""
+        while True:
+            header, arrays = self.next()
+            if header.get("id") == request_id and header["type"] in kinds:
+                return header, arrays
+
+    def close(self) -> None:
+        try:
+            self.send({"type": "shutdown"})
+            self.proc.stdin.close()
+            self.proc.wait(timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture
+def worker():
+    conversation = Conversation()
+    yield conversation
+    conversation.close()
+
+
+def _answered(log, request_id) -> int:
+    """Position in the log of the request's answer."""
+    return next(k for k, (h, _) in enumerate(log) if h.get("id") == request_id and h["type"] in ("result", "error"))
+
+
+@pytest.mark.slow
+def test_a_preview_is_answered_while_the_training_runs_and_leaves_it_undisturbed(worker, tmp_path):
+    data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)
+    run, quiet = tmp_path / "run", tmp_path / "quiet"
+    ckpt = str(run / "nerf.ckpt")
+    steps = 150
+    worker.request(1, "train", {"data": str(data), "out": str(run), "steps": steps, "device": "cpu"})
+    worker.until(1, kinds=("progress",))  # it trains
+    camera = {"camera": None, "size": [40, 30]}
+    worker.request(2, "training_preview", {"checkpoint": ckpt, **camera})
+    worker.request(3, "training_preview", {"checkpoint": ckpt, "camera": "the front"})  # bad: answered too
+    worker.request(4, "training_preview", {"checkpoint": str(tmp_path / "other" / "nerf.ckpt"), **camera})  # not ours
+    worker.request(5, "training_preview", {**camera})  # no checkpoint: not handed to the training
+    preview, arrays = worker.until(2)
+    assert preview["type"] == "result", preview
+    result = preview["result"]
+    assert result["source"] == "training" and 0 < result["step"] < steps
+    rgba = arrays["rgba"]
+    assert rgba.shape == (30, 40, 4) and np.isfinite(rgba).all()
+    assert rgba[..., 3].std() > 0.05 and rgba[..., :3].std() > 0.02  # the sphere's disc, not a constant image
+    bad, _ = worker.until(3)
+    assert bad["type"] == "error" and bad["kind"] == "input" and "`camera` must be a camera" in bad["message"]
+    trained, _ = worker.until(1)
+    assert trained["type"] == "result" and trained["result"]["steps"] == steps, trained
+    # Both previews of the running training came back before it ended; the others waited for it.
+    assert _answered(worker.log, 2) < _answered(worker.log, 1) and _answered(worker.log, 3) < _answered(worker.log, 1)
+    other, _ = worker.until(4)
+    assert other["type"] == "error" and other["kind"] == "input" and "does not exist yet" in other["message"]
+    missing, _ = worker.until(5)
+    assert missing["kind"] == "input" and "needs `checkpoint`" in missing["message"]
+    assert _answered(worker.log, 1) < _answered(worker.log, 4)
+
+    # After the training: the preview renders the checkpoint file, from the same camera.
+    worker.request(6, "training_preview", {"checkpoint": ckpt, **camera})
+    done, done_arrays = worker.until(6)
+    assert done["type"] == "result" and done["result"]["source"] == "checkpoint"
+    assert done_arrays["rgba"].shape == (30, 40, 4) and done_arrays["rgba"][..., 3].std() > 0.05
+
+    # The previews did not disturb the training: the same steps without them give the same weights.
+    worker.request(7, "train", {"data": str(data), "out": str(quiet), "steps": steps, "device": "cpu"})
+    assert worker.until(7)[0]["type"] == "result"
+    a = torch.load(ckpt, map_location="cpu", weights_only=True)
+    b = torch.load(quiet / "nerf.ckpt", map_location="cpu", weights_only=True)
+    assert a["state"].keys() == b["state"].keys() and a["trainer"]["step"] == b["trainer"]["step"] == steps
+    for name in a["state"]:
+        assert torch.equal(a["state"][name], b["state"][name]), name
+    assert torch.equal(a["occupancy"]["density"], b["occupancy"]["density"])
+
+
+def test_hostile_preview_and_prepare_params_are_input_errors(worker, tmp_path):
+    photos = tmp_path / "photos"
+    cases = [
+        ("training_preview", {}, "needs `checkpoint`"),
+        ("training_preview", {"checkpoint": 7, "camera": None}, "needs `checkpoint`"),
+        ("training_preview", {"checkpoint": str(tmp_path / "nerf.ckpt")}, "needs `camera`"),
+        ("training_preview", {"checkpoint": str(tmp_path / "nerf.ckpt"), "camera": None}, "does not exist yet"),
+        ("prepare", {}, "prepare needs `images`"),
+        ("prepare", {"images": ["a"], "out": "x"}, "prepare needs `images`"),
+        ("prepare", {"images": str(photos), "out": None}, "prepare needs `out`"),
+        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "matcher": 3}, "`matcher` must be one of"),
+        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "max_size": "big"}, "`max_size` must be an integer"),
+        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "seed": True}, "`seed` must be an integer"),
+        ("prepare", {"images": str(photos), "out": str(tmp_path / "d")}, "no such folder"),
+    ]
+    for k, (op, params, message) in enumerate(cases):
+        worker.request(k, op, params)
+        header, _ = worker.until(k)
+        assert header["type"] == "error" and header["kind"] == "input", (op, params, header)
+        assert message in header["message"] and "Traceback" not in header["message"], (op, params, header["message"])
+
+
+def test_hostile_preview_cameras_of_a_checkpoint_are_input_errors(worker, sphere_nerf):
+    ckpt = str(sphere_nerf[0])
+    pose = np.eye(4)
+    pose[2, 3] = 3.0
+    good = {"camera_to_world": pose.tolist(), "fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0, "width": 32, "height": 24}
+    cases = [
+        ({"camera": None}, "needs `size`"),
+        ({"camera": None, "size": [32]}, "needs `size`"),
+        ({"camera": None, "size": ["32", 24]}, "needs `size`"),
+        ({"camera": None, "size": [5000, 24]}, "at most 1024x1024"),
+        ({"camera": {**good, "fx": "wide"}}, "bad camera"),
+        ({"camera": {k: v for k, v in good.items() if k != "width"}}, "bad camera"),
+        ({"camera": {**good, "fx": float("nan")}}, "not finite"),
+        ({"camera": {**good, "height": 0}}, "at most 1024x1024"),
+    ]
+    for k, (params, message) in enumerate(cases):
+        worker.request(k, "training_preview", {"checkpoint": ckpt, **params})
+        header, _ = worker.until(k)
+        assert header["type"] == "error" and header["kind"] == "input", (params, header)
+        assert message in header["message"], (params, header["message"])
+    worker.request(99, "training_preview", {"checkpoint": ckpt, "camera": good})
+    header, arrays = worker.until(99)
+    assert header["type"] == "result" and arrays["rgba"].shape == (24, 32, 4) and arrays["rgba"][..., 3].max() > 0.5
+
+
+@pytest.mark.slow
+def test_prepare_op_reports_its_stages_and_a_cancel_leaves_nothing(worker, tmp_path):
+    write_corner_photos(tmp_path / "photos", n_views=8, width=160, height=120, focal=130.0)
+    out = tmp_path / "run" / "dataset"
+    worker.request(1, "prepare", {"images": str(tmp_path / "photos"), "out": str(out)})
+    done, _ = worker.until(1)
+    assert done["type"] == "result", done
+    assert done["result"]["registered"] == 8 and (out / "transforms.json").is_file()
+    messages = [h["message"] for h, _ in worker.log if h.get("id") == 1 and h["type"] == "progress"]
+    fractions = [h["fraction"] for h, _ in worker.log if h.get("id") == 1 and h["type"] == "progress"]
+    assert any("features" in m for m in messages) and any("matching" in m for m in messages)
+    assert any("photos placed" in m for m in messages) and fractions == sorted(fractions)
+
+    # Cancelled while pycolmap works: an error of kind cancelled, no dataset, no work folder, no run folder.
+    out2 = tmp_path / "run2" / "dataset"
+    worker.request(2, "prepare", {"images": str(tmp_path / "photos"), "out": str(out2)})
+    worker.until(2, kinds=("progress",))
+    time.sleep(0.3)
+    worker.send({"type": "cancel", "id": 2})
+    started = time.perf_counter()
+    cancelled, _ = worker.until(2)
+    assert cancelled["type"] == "error" and cancelled["kind"] == "cancelled", cancelled
+    assert time.perf_counter() - started < 3.0
+    assert not (tmp_path / "run2").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos", "run"]
