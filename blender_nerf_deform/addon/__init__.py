@@ -4,12 +4,12 @@ Properties, operators, panels and the RenderEngine live here; heavy work is
 sent to the engine in a worker process.
 """
 
-from . import (cage_ops, composite, extract_ops, handles, nerf_ops, panel, pick_ops, preferences, preview, preview_render,
+from . import (cage_ops, capture_ops, composite, extract_ops, handles, nerf_ops, panel, pick_ops, preferences, preview, preview_render,
                properties, region_ops, render_engine, scene_panel, train_ops, worker_client, worker_setup)
 
 # composite after panel: its sub-panel hangs under the main NeRF Deform panel.
 _modules = (preferences, worker_setup, properties, nerf_ops, region_ops, pick_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel, scene_panel,
-            composite, train_ops)
+            composite, train_ops, capture_ops)
 
 
 def register():

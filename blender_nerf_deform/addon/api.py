@@ -2,7 +2,8 @@
 
     from blender_nerf_deform.addon import api          # (bl_ext.<repo>.blender_nerf_deform.addon as an extension)
 
-    nerf = api.train("/data/fox", seconds=600)          # or api.load("run/nerf.ckpt")
+    nerf = api.train("/data/fox", seconds=600)          # or api.load("run/nerf.ckpt"),
+                                                        # or api.train(api.capture_dataset(objects=[cube]))
     region = api.add_edit_region(nerf, center=(1.6, -0.5, 0.1), size=(4, 5, 3), rotation_euler=(1.66, 0, 1.08))
     surface = api.extract(nerf, resolution=192, pick=(1.7, -1.5, 0.55))
     cage = api.build_cage(nerf)
@@ -52,6 +53,33 @@ def load(checkpoint: str) -> bpy.types.Object:
     """Load NeRF: the NeRF object of a checkpoint."""
     _run(bpy.ops.nerf_deform.load_nerf, "Load NeRF", filepath=str(checkpoint))
     return bpy.context.active_object
+
+
+def capture_dataset(out: str = "", objects=None, count: int = 100, test_count: int = 0, radius: float = 0.0,
+                    resolution=(200, 200), lens: float = 50.0, seed: int = 0, hemisphere: bool = False,
+                    min_elevation: float | None = None, engine: str = "KEEP", samples: int = 16,
+                    transparent: bool = True, selected_only: bool = True) -> str:
+    """Capture Dataset of `objects` (None: the selected objects), blocking: the dataset folder.
+
+    Cameras around the objects (radius 0: automatic), rendered by the scene's engine (engine="KEEP")
+    or Cycles on the CPU ("CYCLES", with `samples`); `min_elevation` (degrees) keeps the cameras
+    above it. `out` empty: //nerf_datasets/<scene name>. The folder is then the Train panel's
+    Dataset, so `train(capture_dataset(...))` is the whole way from a scene to a NeRF."""
+    if objects is not None:
+        objects = list(objects)
+        if not objects:
+            raise RuntimeError("Capture Dataset: no objects given")
+        _activate(objects[0])
+        for obj in objects[1:]:
+            obj.select_set(True)
+    _run(bpy.ops.nerf_deform.capture_dataset, "Capture Dataset", output=str(out), count=count, test_count=test_count,
+         radius=radius, resolution=tuple(resolution), lens=lens, seed=seed, hemisphere=hemisphere,
+         use_min_elevation=min_elevation is not None,
+         min_elevation=0.0 if min_elevation is None else float(min_elevation), engine=engine, samples=samples,
+         transparent=transparent, selected_only=selected_only)
+    import os
+
+    return os.path.normpath(bpy.path.abspath(bpy.context.scene.nerf_deform_training.data))
 
 
 def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 0, device: str = "auto",

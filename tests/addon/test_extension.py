@@ -69,7 +69,8 @@ def test_validator_rejects_a_broken_manifest(tmp_path):
 
 def test_zip_has_the_extension_layout(extension_zip):
     names = set(zipfile.ZipFile(extension_zip).namelist())
-    assert {"blender_manifest.toml", "__init__.py", "addon/__init__.py", "engine/__init__.py"} <= names
+    assert {"blender_manifest.toml", "__init__.py", "addon/__init__.py", "engine/__init__.py",
+            "addon/capture_runner.py", "addon/dataset_capture.py"} <= names
     assert not any("__pycache__" in name or name.endswith(".pyc") for name in names)
 
 
@@ -103,6 +104,24 @@ def test_installed_extension_enables_as_bl_ext_module(installed):
     assert workdir.is_dir() and repo_dir not in workdir.parents
     assert Path(bpy.utils.extension_path_user(EXT_MODULE)) in workdir.parents
     assert prefs.worker_python == ""
+
+
+def test_capture_dataset_runs_from_the_installed_extension(installed, tmp_path):
+    """The renderer process loads the capture code from the installed extension's folder."""
+    import json
+
+    bpy, repo_dir = installed
+    capture_ops = sys.modules[f"{EXT_MODULE}.addon.capture_ops"]
+    assert Path(capture_ops.RUNNER).parent == repo_dir / "blender_nerf_deform" / "addon"
+    # An unsaved file's datasets go to the extension's user folder.
+    assert Path(bpy.utils.extension_path_user(EXT_MODULE)) in Path(capture_ops.default_output_folder("S")).parents
+    bpy.context.scene.render.engine = "CYCLES"
+    bpy.context.scene.cycles.samples = 1
+    bpy.ops.mesh.primitive_cube_add()  # selected
+    assert bpy.ops.nerf_deform.capture_dataset(output=str(tmp_path / "data"), count=2, resolution=(16, 16)) == {"FINISHED"}
+    meta = json.loads((tmp_path / "data" / "transforms.json").read_text())
+    assert len(meta["frames"]) == 2 and meta["generator"]["tool"].startswith("Capture Dataset")
+    assert all((tmp_path / "data" / f["file_path"]).is_file() for f in meta["frames"])
 
 
 def test_disabling_leaves_nothing_registered(installed):
