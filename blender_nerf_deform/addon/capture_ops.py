@@ -29,7 +29,9 @@ How it runs:
   written is it swapped into place (an existing dataset moved aside, the new one renamed in, the
   old one removed). A cancel or a failure removes the staging folder and leaves the destination
   as it was. An existing destination must be empty or a dataset (transforms.json, images/,
-  test/ only): a folder holding anything else is refused rather than replaced.
+  test/ only): a folder holding anything else is refused rather than replaced. Opening another
+  file, disabling the add-on or Blender going away ends the renderer the same way (it checks
+  after each view that the Blender that started it is still there).
 """
 
 from __future__ import annotations
@@ -297,6 +299,14 @@ def cancel_all() -> None:
         job.cancel()
 
 
+@bpy.app.handlers.persistent
+def _cancel_on_load(*_args) -> None:
+    """Opening another file ends the captures of this one (their modal operators end with it)."""
+    for job in list(_live):
+        job.cancel()
+        print(f"Capture Dataset: cancelled by loading another file; {job.destination} is as it was", flush=True)
+
+
 # --------------------------------------------------------------------------- planning
 
 
@@ -539,9 +549,12 @@ _register_classes, _unregister_classes = bpy.utils.register_classes_factory(_cla
 def register():
     _register_classes()
     bpy.types.Scene.nerf_deform_capture = bpy.props.PointerProperty(type=NERFDEFORM_CaptureSettings)
+    bpy.app.handlers.load_pre.append(_cancel_on_load)
 
 
 def unregister():
     cancel_all()
+    if _cancel_on_load in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.remove(_cancel_on_load)
     del bpy.types.Scene.nerf_deform_capture
     _unregister_classes()

@@ -245,6 +245,19 @@ def test_cancel_midway_leaves_the_existing_dataset_as_it_was(scene, tmp_path):
     assert bpy.context.scene.nerf_deform_training.data == ""
 
 
+def test_opening_another_file_cancels_the_capture(scene, tmp_path):
+    bpy, *_ = scene
+    other = tmp_path / "other.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(other), copy=True)
+    out = tmp_path / "data"
+    before = _old_dataset(out)
+    job = _running_job(bpy, out, count=300)
+    bpy.ops.wm.open_mainfile(filepath=str(other))
+    assert job.state == "cancelled" and job._proc.poll() is not None
+    assert _snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "other.blend"]
+
+
 def test_a_renderer_that_dies_is_a_failure_that_changes_nothing(scene, tmp_path):
     bpy, *_ = scene
     out = tmp_path / "data"
@@ -263,7 +276,14 @@ def test_background_run_to_the_end_replaces_the_old_dataset(scene, tmp_path):
 
     out = tmp_path / "data"
     _old_dataset(out)
+    # What a Blender that died while capturing left (its pid is gone), and a live Blender's capture.
+    dead, live = tmp_path / ".data.capturing-4194999-x1", tmp_path / ".data.capturing-1-x2"
+    for folder in (dead, live):
+        (folder / "images").mkdir(parents=True)
     job = _running_job(bpy, out, count=4, at_least=1)
+    assert not dead.exists() and live.is_dir()
+    live.joinpath("images").rmdir()
+    live.rmdir()
     assert job.wait(timeout=120) == "done", job.error
     assert 0 < job.fraction <= 1 and job.done == 4
     assert "4 views" in capture_ops.finish(job)
