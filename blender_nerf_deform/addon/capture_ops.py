@@ -19,7 +19,9 @@ How it runs:
   stays usable meanwhile, the user can keep editing (the capture shows the scene as it was when
   it started), and a crash of the renderer leaves Blender untouched. The factory-started
   renderer has Blender's own engines (Cycles, EEVEE, Workbench) and none of the user's add-ons,
-  so a scene whose engine an add-on provides is refused up front (pick Cycles).
+  so a scene whose engine an add-on provides is refused up front (pick Cycles). Nor has it the
+  user's preferences: Cycles set to render on the GPU renders on the CPU there (no GPU device
+  is enabled in factory preferences).
 - The process prints one line per view; a thread reads its stdout into a queue that the main
   thread drains: `execute` (scripts, `blender -b`, tests) waits and prints progress; `invoke` (the
   button) returns at once and a modal timer shows progress in the status bar, Esc cancels (the

@@ -245,6 +245,20 @@ def test_cancel_midway_leaves_the_existing_dataset_as_it_was(scene, tmp_path):
     assert bpy.context.scene.nerf_deform_training.data == ""
 
 
+def test_a_second_capture_into_the_same_folder_is_refused_while_one_runs(scene, tmp_path):
+    bpy, *_ = scene
+    from blender_nerf_deform.addon import capture_ops
+
+    out = tmp_path / "data"
+    before = _old_dataset(out)
+    job = _running_job(bpy, out, count=300)
+    assert capture_ops._live == {job}
+    with pytest.raises(RuntimeError, match=rf"a capture into {out} is already running: wait for it or cancel it"):
+        bpy.ops.nerf_deform.capture_dataset(output=str(out), count=1)
+    job.cancel()
+    assert not capture_ops._live and _snapshot(out) == before
+
+
 def test_opening_another_file_cancels_the_capture(scene, tmp_path):
     bpy, *_ = scene
     other = tmp_path / "other.blend"
