@@ -280,14 +280,18 @@ class CaptureJob:
         """Block until the job is over (calling on_progress(job) as views come); the final state."""
         deadline = None if timeout is None else time.monotonic() + timeout
         seen = -1
-        while not self.poll():
-            if self.done != seen and on_progress is not None:
-                seen = self.done
-                on_progress(self)
-            if deadline is not None and time.monotonic() > deadline:
-                self.cancel()
-                break
-            time.sleep(0.05)
+        try:
+            while not self.poll():
+                if self.done != seen and on_progress is not None:
+                    seen = self.done
+                    on_progress(self)
+                if deadline is not None and time.monotonic() > deadline:
+                    self.cancel()
+                    break
+                time.sleep(0.05)
+        except BaseException:  # Ctrl-C in `blender -b`: nothing half-made stays behind
+            self.cancel()
+            raise
         return self.state
 
     def _cleanup(self) -> None:
