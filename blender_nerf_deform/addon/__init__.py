@@ -5,11 +5,12 @@ sent to the engine in a worker process.
 """
 
 from . import (cage_ops, capture_ops, composite, extract_ops, handles, nerf_ops, panel, pick_ops, preferences, preview, preview_render,
-               properties, region_ops, render_engine, scene_panel, train_ops, worker_client, worker_setup)
+               photos_ops, properties, region_ops, render_engine, scene_panel, train_ops, training_preview, worker_client,
+               worker_setup)
 
 # composite after panel: its sub-panel hangs under the main NeRF Deform panel.
 _modules = (preferences, worker_setup, properties, nerf_ops, region_ops, pick_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel, scene_panel,
-            composite, train_ops, capture_ops)
+            composite, train_ops, capture_ops, training_preview, photos_ops)
 
 
 def register():

@@ -4,6 +4,7 @@
 
     nerf = api.train("/data/fox", seconds=600)          # or api.load("run/nerf.ckpt"),
                                                         # or api.train(api.capture_dataset(objects=[cube]))
+                                                        # or api.import_photos("/photos/statue", seconds=600)
     region = api.add_edit_region(nerf, center=(1.6, -0.5, 0.1), size=(4, 5, 3), rotation_euler=(1.66, 0, 1.08))
     surface = api.extract(nerf, resolution=192, pick=(1.7, -1.5, 0.55))
     cage = api.build_cage(nerf)
@@ -87,16 +88,37 @@ def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 
     """Train NeRF on a dataset folder (blocking), then the NeRF object that shows it."""
     _run(bpy.ops.nerf_deform.train_nerf, "Train NeRF", data=str(data), run_folder=str(run_folder), seconds=seconds,
          steps=steps, device=device, downscale=downscale, resume=resume)
-    from .train_ops import _same_file, default_run_folder
+    from .train_ops import default_run_folder
     import os
 
     ckpt = os.path.join(os.path.abspath(bpy.path.abspath(run_folder)) if run_folder else default_run_folder(
         os.path.abspath(bpy.path.abspath(data))), "nerf.ckpt")
+    return _showing(ckpt, "Train NeRF")
+
+
+def _showing(ckpt: str, what: str) -> bpy.types.Object:
+    """The NeRF object that shows the checkpoint `ckpt`."""
+    from .train_ops import _same_file
+
     for obj in bpy.data.objects:
         if obj.nerf_deform.role == "NERF" and obj.nerf_deform.checkpoint and \
                 _same_file(bpy.path.abspath(obj.nerf_deform.checkpoint), ckpt):
             return obj
-    raise RuntimeError(f"Train NeRF finished but no NeRF object shows {ckpt}")
+    raise RuntimeError(f"{what} finished but no NeRF object shows {ckpt}")
+
+
+def import_photos(photos: str, run_folder: str = "", seconds: float = 300.0, steps: int = 0, device: str = "auto",
+                  downscale: int = 1, matcher: str = "exhaustive") -> bpy.types.Object:
+    """Import Photos (blocking): the photos' cameras by structure from motion into <run folder>/dataset,
+    a NeRF trained on them (run folder default: //nerf_runs/<photos folder name>), then its NeRF object."""
+    from .train_ops import default_run_folder
+    import os
+
+    _run(bpy.ops.nerf_deform.import_photos, "Import Photos", photos=str(photos), run_folder=str(run_folder),
+         seconds=seconds, steps=steps, device=device, downscale=downscale, matcher=matcher)
+    run = os.path.abspath(bpy.path.abspath(str(run_folder))) if run_folder else default_run_folder(
+        os.path.abspath(bpy.path.abspath(str(photos))))
+    return _showing(os.path.join(run, "nerf.ckpt"), "Import Photos")
 
 
 def add_edit_region(nerf, center, size, rotation_euler=(0.0, 0.0, 0.0)) -> bpy.types.Object:

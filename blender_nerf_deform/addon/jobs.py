@@ -8,9 +8,18 @@ One operator, two ways to run, as Blender's own long operators offer:
   cancels, and the result is applied on Blender's main thread.
 Either way the scene changes only in `apply`, after the worker answered, so a
 failed or cancelled job leaves the scene as it was.
+
+A chain of requests (Import Photos: prepare, then train): `apply` may return
+the next `WorkerRequest` instead of Blender's result set; the operator then
+sends it, with the same progress, status bar (each request's `stage` names it,
+"1/2 cameras: ...") and Esc, and `execute` runs the whole chain blocking. Esc
+cancels the request running; one that finished anyway (its cancel came too
+late) is applied, but no next request is sent.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import bpy
 
@@ -37,11 +46,27 @@ def worker(context) -> WorkerClient:
     return get_client(python)
 
 
+class WorkerRequest(NamedTuple):
+    """One request of an operator; `stage` names it in the progress and the status bar (a chain's step)."""
+
+    op: str
+    params: dict
+    arrays: dict | None = None
+    stage: str = ""
+
+
+def _as_request(request) -> WorkerRequest:
+    return request if isinstance(request, WorkerRequest) else WorkerRequest(*request)
+
+
 class WorkerOperator:
-    """Mixin: define `request(context) -> (op, params, arrays)` and `apply(context, result, arrays)`."""
+    """Mixin: define `request(context) -> (op, params, arrays)` (or a WorkerRequest) and
+    `apply(context, result, arrays)` -> Blender's result set, or the next WorkerRequest of a chain.
+    `self.current_request` is the request being answered (a chain's `apply` reads its op)."""
 
     _job_id: int | None = None
     _timer = None
+    current_request = None  # the WorkerRequest answered now (no annotation: Blender reads those as properties)
 
     def request(self, context):
         raise NotImplementedError
@@ -49,33 +74,52 @@ class WorkerOperator:
     def apply(self, context, result: dict, arrays: dict) -> set[str]:
         raise NotImplementedError
 
+    def _label(self) -> str:
+        """What progress and errors start with: the operator, and the stage of a chain."""
+        stage = self.current_request.stage if self.current_request is not None else ""
+        return f"{self.bl_label}: {stage}" if stage else self.bl_label
+
     def _fail(self, error: Exception) -> set[str]:
-        self.report({"ERROR"}, f"{self.bl_label}: {error}")
+        self.report({"ERROR"}, f"{self._label()}: {error}")
         return {"CANCELLED"}
 
     def execute(self, context):
         try:
-            op, params, arrays = self.request(context)
-            result, out = worker(context).call(
-                op, params, arrays, on_progress=lambda f, msg: print(f"{self.bl_label}: {100 * f:5.1f}% {msg}")
-            )
+            request = _as_request(self.request(context))
+            client = worker(context)
         except (WorkerError, ValueError) as error:
             return self._fail(error)
-        return self.apply(context, result, out)
+        while True:
+            self.current_request = request
+            label = self._label()
+            try:
+                result, out = client.call(request.op, request.params, request.arrays,
+                                          on_progress=lambda f, msg: print(f"{label}: {100 * f:5.1f}% {msg}"))
+            except (WorkerError, ValueError) as error:
+                return self._fail(error)
+            answer = self.apply(context, result, out)
+            if not isinstance(answer, WorkerRequest):
+                return answer
+            request = answer
+
+    def _submit(self, request: WorkerRequest) -> None:
+        self.current_request = request
+        self._state = {"done": None, "progress": 0.0, "message": ""}
+        self._job_id = self._client.submit(
+            request.op,
+            request.params,
+            request.arrays,
+            on_done=lambda result, out: self._state.update(done=("ok", result, out)),
+            on_error=lambda error: self._state.update(done=("error", error, None)),
+            on_progress=lambda f, msg: self._state.update(progress=f, message=msg),
+        )
 
     def invoke(self, context, event):
         try:
-            op, params, arrays = self.request(context)
-            client = self._client = worker(context)
-            self._state = {"done": None, "progress": 0.0, "message": ""}
-            self._job_id = client.submit(
-                op,
-                params,
-                arrays,
-                on_done=lambda result, out: self._state.update(done=("ok", result, out)),
-                on_error=lambda error: self._state.update(done=("error", error, None)),
-                on_progress=lambda f, msg: self._state.update(progress=f, message=msg),
-            )
+            request = _as_request(self.request(context))
+            self._client = worker(context)
+            self._cancel_asked = False
+            self._submit(request)
         except (WorkerError, ValueError) as error:
             return self._fail(error)
         wm = context.window_manager
@@ -93,6 +137,7 @@ class WorkerOperator:
     def modal(self, context, event):
         client = self._client
         if event.type == "ESC":
+            self._cancel_asked = True
             client.cancel(self._job_id)
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
@@ -100,10 +145,27 @@ class WorkerOperator:
         state = self._state
         if state["done"] is None:
             context.window_manager.progress_update(int(100 * state["progress"]))
-            context.workspace.status_text_set(f"{self.bl_label}: {100 * state['progress']:.0f}% {state['message']} (Esc to cancel)")
+            context.workspace.status_text_set(f"{self._label()}: {100 * state['progress']:.0f}% {state['message']} (Esc to cancel)")
             return {"RUNNING_MODAL"}
-        self._finish(context)
         kind, payload, out = state["done"]
         if kind == "error":
+            self._finish(context)
             return self._fail(payload)
-        return self.apply(context, payload, out)
+        try:
+            answer = self.apply(context, payload, out)
+        except BaseException:
+            self._finish(context)  # no timer or status text left behind
+            raise
+        if not isinstance(answer, WorkerRequest):
+            self._finish(context)
+            return answer
+        if self._cancel_asked:  # the stage ended before the cancel reached it: go no further
+            self._finish(context)
+            self.report({"WARNING"}, f"{self._label()}: cancelled after this stage; {answer.stage or answer.op} not started")
+            return {"CANCELLED"}
+        try:
+            self._submit(answer)
+        except (WorkerError, ValueError) as error:
+            self._finish(context)
+            return self._fail(error)
+        return {"RUNNING_MODAL"}

@@ -37,13 +37,13 @@ def show_in_image_editors(image: bpy.types.Image) -> None:
             area.tag_redraw()
 
 
-def write_image(rgba: np.ndarray) -> bpy.types.Image:
-    """Put a premultiplied scene-linear frame (rows top-down) into "NeRF Preview" (linear float,
-    straight alpha, rows bottom-up)."""
+def write_image(rgba: np.ndarray, name: str = IMAGE_NAME) -> bpy.types.Image:
+    """Put a premultiplied scene-linear frame (rows top-down) into the image `name` (default "NeRF
+    Preview"; linear float, straight alpha, rows bottom-up)."""
     height, width = rgba.shape[:2]
-    image = bpy.data.images.get(IMAGE_NAME)
+    image = bpy.data.images.get(name)
     if image is None:
-        image = bpy.data.images.new(IMAGE_NAME, width, height, alpha=True, float_buffer=True)
+        image = bpy.data.images.new(name, width, height, alpha=True, float_buffer=True)
     elif tuple(image.size) != (width, height):
         image.scale(width, height)
     alpha = rgba[..., 3:]

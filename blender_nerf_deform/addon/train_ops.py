@@ -8,7 +8,17 @@ estimate of what is left) in the status bar; Esc cancels, and the checkpoint wri
 kept and loaded. Resume continues the run folder's checkpoint. When done the NeRF object appears,
 or, if one already shows this checkpoint, it renders the new weights (the worker reloads a
 checkpoint whose file changed). From Python (`bpy.ops.nerf_deform.train_nerf(...)`) it blocks.
-The worker serves one request at a time: renders and previews wait while it trains.
+The worker serves one request at a time: renders and previews of the scene wait while it trains.
+
+Preview (the Train panel's button, `nerf_deform.preview_training`, training_preview.py): while a
+training runs, a small frame of the model as it is now, from the scene camera (or, without one,
+a view of the NeRF's box), into the image "NeRF Training Preview" shown in open Image Editors.
+The training answers it between two steps and goes on undisturbed; with no training running it
+renders the run folder's checkpoint. The button is enabled while a training runs or when the
+panel's run folder holds a checkpoint.
+
+Import Photos (photos_ops.py) is the same training after a first stage that finds the photos'
+cameras by structure from motion: one operator, photos folder to NeRF object.
 """
 
 from __future__ import annotations
@@ -18,6 +28,7 @@ import os
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
+from . import training_preview
 from .jobs import WorkerOperator
 from .worker_client import PACKAGE_DIR_MODULE
 
@@ -41,6 +52,36 @@ def _same_file(a: str, b: str) -> bool:
         return os.path.samefile(a, b)
     except OSError:
         return False
+
+
+def train_params(data: str, out: str, seconds: float, steps: int, device: str, downscale: int, resume: bool) -> dict:
+    """The worker's `train` request (a budget of seconds and/or steps; 0 is no limit)."""
+    params = {"data": data, "out": out, "device": device, "downscale": int(downscale), "resume": bool(resume)}
+    if seconds > 0:
+        params["max_seconds"] = float(seconds)
+    if steps > 0:
+        params["steps"] = int(steps)
+    return params
+
+
+def show_trained(op, context, result: dict, ckpt: str) -> set[str]:
+    """After a training (done or cancelled): report it, then load its checkpoint as a NeRF object, or
+    refresh the objects that already show it."""
+    ckpt = result.get("checkpoint", ckpt)
+    how = "cancelled, the checkpoint so far kept" if result.get("cancelled") else "done"
+    op.report({"INFO"}, f"{op.bl_label} {how}: {result.get('steps', 0)} steps in {result.get('seconds', 0):.0f} s, "
+                        f"batch PSNR {result.get('psnr', float('nan')):.1f} dB -> {ckpt}")
+    existing = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF" and o.users_collection
+                and o.nerf_deform.checkpoint and _same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)]
+    if existing:
+        for nerf in existing:
+            nerf.update_tag()  # renders and the viewport take the new weights (the worker reloads the file)
+        op.report({"INFO"}, f"{', '.join(o.name for o in existing)} now shows the new checkpoint")
+        return {"FINISHED"}
+    if bpy.ops.nerf_deform.load_nerf(filepath=ckpt) != {"FINISHED"}:
+        op.report({"ERROR"}, f"{op.bl_label}: the checkpoint {ckpt} could not be loaded")
+        return {"CANCELLED"}
+    return {"FINISHED"}
 
 
 class NERFDEFORM_OT_train_nerf(WorkerOperator, bpy.types.Operator):
@@ -73,30 +114,11 @@ class NERFDEFORM_OT_train_nerf(WorkerOperator, bpy.types.Operator):
         if os.path.exists(ckpt) and not self.resume:
             raise ValueError(f"{ckpt} already holds a NeRF: tick Resume to continue it, or pick another run folder")
         self._checkpoint = ckpt
-        params = {"data": data, "out": out, "device": self.device, "downscale": int(self.downscale),
-                  "resume": bool(self.resume and os.path.exists(ckpt))}
-        if self.seconds > 0:
-            params["max_seconds"] = float(self.seconds)
-        if self.steps > 0:
-            params["steps"] = int(self.steps)
-        return "train", params, None
+        return "train", train_params(data, out, self.seconds, self.steps, self.device, self.downscale,
+                                     self.resume and os.path.exists(ckpt)), None
 
     def apply(self, context, result, arrays):
-        ckpt = result.get("checkpoint", self._checkpoint)
-        how = "cancelled, the checkpoint so far kept" if result.get("cancelled") else "done"
-        self.report({"INFO"}, f"Train NeRF {how}: {result.get('steps', 0)} steps in {result.get('seconds', 0):.0f} s, "
-                              f"batch PSNR {result.get('psnr', float('nan')):.1f} dB -> {ckpt}")
-        existing = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF" and o.users_collection
-                    and o.nerf_deform.checkpoint and _same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)]
-        if existing:
-            for nerf in existing:
-                nerf.update_tag()  # renders and the viewport take the new weights (the worker reloads the file)
-            self.report({"INFO"}, f"{', '.join(o.name for o in existing)} now shows the new checkpoint")
-            return {"FINISHED"}
-        if bpy.ops.nerf_deform.load_nerf(filepath=ckpt) != {"FINISHED"}:
-            self.report({"ERROR"}, f"Train NeRF: the checkpoint {ckpt} could not be loaded")
-            return {"CANCELLED"}
-        return {"FINISHED"}
+        return show_trained(self, context, result, self._checkpoint)
 
 
 class NERFDEFORM_TrainingSettings(bpy.types.PropertyGroup):
@@ -112,6 +134,9 @@ class NERFDEFORM_TrainingSettings(bpy.types.PropertyGroup):
                                                ("cpu", "CPU", ""), ("cuda", "CUDA", "")), default="auto")
     downscale: IntProperty(name="Downscale", default=1, min=1, max=16, description="Box-filter the images by this factor")
     resume: BoolProperty(name="Resume", default=False, description="Continue the run folder's checkpoint")
+    photos: StringProperty(name="Photos", subtype="DIR_PATH",
+                           description="Folder of photos (.jpg/.png) for Import Photos: cameras by structure from "
+                                       "motion, then training (run folder //nerf_runs/<folder name>)")
 
 
 class NERFDEFORM_PT_train(bpy.types.Panel):
@@ -130,6 +155,13 @@ class NERFDEFORM_PT_train(bpy.types.Panel):
             col.prop(t, name)
         op = col.operator(NERFDEFORM_OT_train_nerf.bl_idname, icon="PLAY")
         for name in ("data", "run_folder", "seconds", "steps", "device", "downscale", "resume"):
+            setattr(op, name, getattr(t, name))
+        training_preview.draw_in_panel(col, context)
+        box = self.layout.box()
+        box.label(text="Import Photos (time budget, steps and device above)")
+        box.prop(t, "photos")
+        op = box.operator("nerf_deform.import_photos", icon="IMAGE_DATA")
+        for name in ("photos", "seconds", "steps", "device", "downscale"):
             setattr(op, name, getattr(t, name))
 
 

@@ -362,6 +362,12 @@ class WorkerClient:
                 except (OSError, ValueError):
                     pass
 
+    def in_flight(self, op: str) -> list[dict]:
+        """The params of this client's requests of `op` that the worker has not answered yet
+        (Preview Training asks which trainings run)."""
+        with self._lock:
+            return [r.send[1] for r in self._requests.values() if r.send and r.send[0] == op]
+
     @property
     def busy(self) -> bool:
         return bool(self._requests) or not self._main_inbox.empty()
@@ -446,6 +452,11 @@ def get_client(python: str) -> WorkerClient:
             _client.stop()
         _client = WorkerClient(python)
     _ensure_timer()
+    return _client
+
+
+def active_client() -> WorkerClient | None:
+    """The shared worker's client if one was made (starts nothing: for polls and panels)."""
     return _client
 
 

@@ -43,7 +43,7 @@ from .checkpoint import load_nerf, read_checkpoint, save_nerf
 from .dataset import NerfDataset, load_dataset
 from .model import NerfConfig, NerfModel, resolve_device
 from .lens import camera_directions
-from .renderer import render_rays
+from .renderer import render_image, render_rays
 
 
 @dataclass
@@ -249,6 +249,19 @@ class Trainer:
         if self.opt.max_seconds is not None and self.elapsed >= self.opt.max_seconds:
             return True
         return False
+
+    def render_preview(self, camera, progress=None) -> dict:
+        """`render_image` of the model as it is now, between two steps (the worker's training preview):
+        eval mode, no gradients, the random state forked and the optimizer untouched, so that the
+        training goes on exactly as it would have without it."""
+        m = self.model
+        was = m.training
+        m.eval()
+        try:
+            with torch.random.fork_rng(devices=[m.device] if m.device.type == "cuda" else []):
+                return render_image(m, camera, progress=progress)
+        finally:
+            m.train(was)
 
     # --- resume ------------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -205,8 +205,11 @@ def _preview_camera(p: dict, aabb) -> Camera:
     return camera
 
 
-def _preview_frame(job: Job, model, camera: Camera, stats: dict) -> tuple[dict, dict]:
-    out = PosedRenderer(model).render(camera, None, progress=lambda done, total: job.progress(done / total, "rendering the preview"))
+def _preview_frame(job: Job, camera: Camera, stats: dict, model=None, trainer=None) -> tuple[dict, dict]:
+    """The frame of a checkpoint's model, or of the model a trainer is training (between two steps)."""
+    progress = lambda done, total: job.progress(done / total, "rendering the preview")  # noqa: E731
+    out = trainer.render_preview(camera, progress) if trainer is not None else \
+        PosedRenderer(model).render(camera, None, progress=progress)
     stats.update(width=camera.width, height=camera.height,
                  **{k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
     return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}
@@ -221,23 +224,13 @@ def _checked_preview(p: dict) -> str:
 
 
 def _training_preview_of(side: Job, trainer) -> tuple[dict, dict]:
-    """A preview of the model being trained, between two steps: eval mode and no gradients (render_image),
-    the random state and the optimizer untouched, so the training goes on exactly as without it."""
-    import torch
-
+    """A preview of the model being trained, between two steps (`Trainer.render_preview`: the
+    training goes on exactly as without it)."""
     _checked_preview(side.params)
-    model = trainer.model
-    camera = _preview_camera(side.params, model.aabb.detach().cpu().numpy())
-    was = model.training
-    devices = [model.device] if model.device.type == "cuda" else []
-    model.eval()
-    try:
-        with torch.random.fork_rng(devices=devices):
-            psnr = trainer.last.get("psnr") if trainer.last else None
-            return _preview_frame(side, model, camera, {"source": "training", "step": trainer.step_count,
-                                                        "seconds": trainer.elapsed, "psnr": psnr})
-    finally:
-        model.train(was)
+    camera = _preview_camera(side.params, trainer.model.aabb.detach().cpu().numpy())
+    psnr = trainer.last.get("psnr") if trainer.last else None
+    return _preview_frame(side, camera, {"source": "training", "step": trainer.step_count, "seconds": trainer.elapsed,
+                                         "psnr": psnr}, trainer=trainer)
 
 
 @op("training_preview", side=True)
@@ -251,7 +244,7 @@ def training_preview(job: Job) -> tuple[dict, dict]:
                           "exist yet: start the training, or wait for its first checkpoint")
     model = cached_model(path, job.params.get("device", "auto"))
     camera = _preview_camera(job.params, model.aabb.detach().cpu().numpy())
-    return _preview_frame(job, model, camera, {"source": "checkpoint", "checkpoint": path})
+    return _preview_frame(job, camera, {"source": "checkpoint", "checkpoint": path}, model=model)
 
 
 @op("prepare")

@@ -1,2 +1,6 @@
 """Photos with no poses → cameras: structure from motion with pycolmap (COLMAP itself), the
 reconstruction oriented upright and scaled, written as a transforms.json dataset (`prepare`)."""
+
+# The photo files `prepare` reads: plain data here, so that the add-on can count a folder's photos
+# before it asks the worker (prepare.py reaches PIL, which Blender's Python lacks).
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG"})
