@@ -135,6 +135,8 @@ def test_hostile_preview_and_prepare_params_are_input_errors(worker, tmp_path):
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "max_size": "big"}, "`max_size` must be an integer"),
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "seed": True}, "`seed` must be an integer"),
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d")}, "no such folder"),
+        ("train", {"data": str(photos), "out": str(tmp_path / "r"), "downscale": "2"}, "`downscale` must be a whole number"),
+        ("train", {"data": str(photos), "out": str(tmp_path / "r"), "downscale": 0}, "`downscale` must be a whole number"),
     ]
     for k, (op, params, message) in enumerate(cases):
         worker.request(k, op, params)

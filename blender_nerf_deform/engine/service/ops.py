@@ -142,6 +142,9 @@ def train(job: Job) -> dict:
         if not isinstance(p.get(key), str) or not p[key]:
             raise EngineError(f"train needs `{key}`, a folder path")
     steps, seconds = p.get("steps"), p.get("max_seconds")
+    downscale = p.get("downscale", 1)
+    if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
+        raise EngineError(f"train's `downscale` must be a whole number >= 1, got {downscale!r}")
     last = [0.0]
     checkpoint = _same_path_key(os.path.join(p["out"], "nerf.ckpt"))
 
@@ -168,7 +171,7 @@ def train(job: Job) -> dict:
 
     with job.serving_side_requests(ours):
         summary = run_training(p["data"], p["out"], max_seconds=seconds, steps=steps, device=p.get("device", "auto"),
-                               downscale=int(p.get("downscale", 1)), resume=bool(p.get("resume")),
+                               downscale=downscale, resume=bool(p.get("resume")),
                                overwrite=bool(p.get("overwrite")), progress=False, callback=report,
                                should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"))
     keep = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height")
