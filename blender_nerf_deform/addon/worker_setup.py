@@ -167,7 +167,7 @@ for name, module in imports.items():
         importlib.import_module(module)
     except Exception as exc:
         out["missing"].append(f"{name} ({type(exc).__name__}: {exc})")
-import torch
+torch = importlib.import_module("torch")  # in the worker environment's Python, not Blender's
 out["torch"] = torch.__version__
 out["cuda"] = bool(torch.cuda.is_available())
 sys.path.insert(0, root)
