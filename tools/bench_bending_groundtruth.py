@@ -127,7 +127,44 @@ def move_head_map(p: np.ndarray) -> np.ndarray:
     return p + w[:, None] * HEAD_MOVE
 
 
-MAPS = {"scale": scale_map, "bend": bend_map, "twist": twist_map, "move_head": move_head_map}
+WIDEN = np.array([1.3, 1.3, 1.0])
+
+
+def widen_map(p: np.ndarray) -> np.ndarray:
+    """Uniform widening 1.3x in both horizontal axes about the Z axis (every side face stretched across its normal)."""
+    return p * WIDEN
+
+
+STRETCH_BAND = (-0.30, 0.00)  # a band of the bar itself (the bar spans z -1.00 .. 0.40)
+STRETCH_LIFT = 0.51  # the band's 0.30 grows to 0.81: 2.7x its height on average, 3.55x at its middle
+
+
+def stretch_weight(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothstep across STRETCH_BAND and its derivative dw/dz."""
+    a, b = STRETCH_BAND
+    s = np.clip((z - a) / (b - a), 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s), np.where((s > 0) & (s < 1), 6.0 * s * (1.0 - s) / (b - a), 0.0)
+
+
+def stretch_map(p: np.ndarray) -> np.ndarray:
+    """Pull the two ends of the object apart along z (each by half STRETCH_LIFT); the band between them,
+    a part of the bar's own surface, stretches smoothly (smoothstep) to 2.7x its height (3.55x at its middle)."""
+    w, _ = stretch_weight(p[:, 2])
+    out = p.copy()
+    out[:, 2] = p[:, 2] + (w - 0.5) * STRETCH_LIFT
+    return out
+
+
+SQUASH = np.array([0.5, 1.0, 1.0])
+
+
+def squash_map(p: np.ndarray) -> np.ndarray:
+    """Squash to 0.5x along x (the +-x faces compressed across their normal, the +-y faces along them)."""
+    return p * SQUASH
+
+
+MAPS = {"scale": scale_map, "bend": bend_map, "twist": twist_map, "move_head": move_head_map,
+        "widen": widen_map, "stretch": stretch_map, "squash": squash_map}
 
 # --------------------------------------------------------------------------- Blender
 
@@ -244,8 +281,9 @@ def _set_vertices(bpy, obj, co: np.ndarray) -> None:
     bpy.context.view_layer.update()
 
 
-def render_ground_truth(work: Path, args) -> dict:
-    """Rest-pose dataset (train + test) and, per map, the deformed meshes seen from the same test cameras."""
+def render_ground_truth(work: Path, args, maps=None, rest_pose: bool = True) -> dict:
+    """Rest-pose dataset (train + test) and, per map of `maps` (default all), the deformed meshes seen
+    from the same test cameras. rest_pose False: only the maps (the rest pose's dataset is kept)."""
     import bpy  # noqa: PLC0415
     from make_dataset import make_dataset  # noqa: PLC0415
 
@@ -254,10 +292,12 @@ def render_ground_truth(work: Path, args) -> dict:
     common = dict(radius=4.0, resolution=(args.resolution, args.resolution), samples=args.samples,
                   seed=args.seed, test_count=args.test_views, threads=0, denoise=False)
     t0 = time.perf_counter()
-    make_dataset(work / "data", blend=None, progress=None, count=args.views, **common)
-    print(f"ground truth: rest pose, {args.views} training + {args.test_views} test views "
-          f"({time.perf_counter() - t0:.1f} s)", flush=True)
-    for name, fn in MAPS.items():
+    if rest_pose:
+        make_dataset(work / "data", blend=None, progress=None, count=args.views, **common)
+        print(f"ground truth: rest pose, {args.views} training + {args.test_views} test views "
+              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    for name in (MAPS if maps is None else maps):
+        fn = MAPS[name]
         t0 = time.perf_counter()
         for obj in objects:
             _set_vertices(bpy, obj, fn(rest[obj.name]))
@@ -350,6 +390,16 @@ def cage_components(tets: np.ndarray, n_vertices: int) -> int:
 # --------------------------------------------------------------------------- main
 
 
+def _select_maps(ap, names: str | None) -> dict:
+    if not names:
+        return dict(MAPS)
+    chosen = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = [n for n in chosen if n not in MAPS]
+    if unknown or not chosen:
+        ap.error(f"--maps: unknown map(s) {', '.join(unknown) or '(none given)'}; known: {', '.join(MAPS)}")
+    return {n: MAPS[n] for n in chosen}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, default=Path("/work/runs/gt_bench"), help="output folder (outside the repo)")
@@ -359,6 +409,10 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel (default 32, no denoiser)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--train-seconds", type=float, default=240.0, help="NeRF training budget (default 240)")
+    ap.add_argument("--train-steps", type=int, default=None,
+                    help="train for this many steps instead of --train-seconds (repeatable: the tests use it)")
+    ap.add_argument("--maps", default=None,
+                    help=f"comma-separated subset of the maps (default all: {','.join(MAPS)})")
     ap.add_argument("--margin", type=float, default=0.3,
                     help="cage margin (default 0.3: wider than half the 0.45 gap, so the cage is one piece)")
     ap.add_argument("--edge-length", type=float, default=None, help="cage tet edge length (default: the engine's)")
@@ -367,6 +421,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse", action="store_true",
                     help="keep ground truth, checkpoint, mesh and cage already in --work; redo renders and scores")
     args = ap.parse_args(argv)
+    maps = _select_maps(ap, args.maps)
     work = args.work.resolve()
     if str(work).startswith(str(REPO) + "/"):
         print("note: --work is inside the repository; outputs are large", flush=True)
@@ -375,15 +430,18 @@ def main(argv=None) -> int:
     reused = []
 
     # 1-3. Ground truth.
-    have_gt = (work / "data" / "test" / "transforms.json").is_file() and all(
-        (work / f"gt_{m}" / "test" / "transforms.json").is_file() for m in MAPS)
-    if args.reuse and have_gt:
+    have_rest = (work / "data" / "test" / "transforms.json").is_file()
+    missing = [m for m in maps if not (work / f"gt_{m}" / "test" / "transforms.json").is_file()]
+    if args.reuse and have_rest and not missing:
         reused.append("ground truth")
+    elif args.reuse and have_rest:  # maps added since: render only theirs (the test cameras are checked below)
+        reused.append("ground truth of the rest pose and of " + ", ".join(m for m in maps if m not in missing))
+        render_ground_truth(work, args, maps=missing, rest_pose=False)
     else:
-        render_ground_truth(work, args)
+        render_ground_truth(work, args, maps=list(maps))
     test_json = work / "data" / "test" / "transforms.json"
     rest_meta = json.loads(test_json.read_text())
-    for m in MAPS:  # the deformed ground truth must be seen from the rest pose's test cameras
+    for m in maps:  # the deformed ground truth must be seen from the rest pose's test cameras
         meta = json.loads((work / f"gt_{m}" / "test" / "transforms.json").read_text())
         a = np.array([f["transform_matrix"] for f in meta["frames"]])
         b = np.array([f["transform_matrix"] for f in rest_meta["frames"]])
@@ -399,8 +457,9 @@ def main(argv=None) -> int:
     if args.reuse and ckpt.is_file():
         reused.append("checkpoint")
     else:
-        timings["train_s"] = engine(work / "train.log", "train", "--data", work / "data", "--out", run,
-                                    "--max-seconds", args.train_seconds, "--device", args.device, "--overwrite")
+        budget = ["--steps", args.train_steps] if args.train_steps else ["--max-seconds", args.train_seconds]
+        timings["train_s"] = engine(work / "train.log", "train", "--data", work / "data", "--out", run, *budget,
+                                    "--seed", args.seed, "--device", args.device, "--overwrite")
         print(f"train: {timings['train_s']:.0f} s; {_last_lines(work / 'train.log', 1)}", flush=True)
     if args.reuse and mesh.is_file():
         reused.append("mesh")
@@ -450,7 +509,7 @@ def main(argv=None) -> int:
                renders / "identity", "--cage", cage_path, "--deformed", work / "V_identity.npy", "--device", args.device)
     rows.append({"pose": "identity (cage, V = rest)", "gt": "data/test", **score(renders / "identity", test_json),
                  "render_s": t})
-    for name, fn in MAPS.items():
+    for name, fn in maps.items():
         V = fn(rest_v)
         np.save(work / f"V_{name}.npy", V)
         gt_json = work / f"gt_{name}" / "test" / "transforms.json"
