@@ -23,8 +23,11 @@ carries its own step length. Hooks for ray bending:
 
 - `occupancy=`: any `OccupancyGrid` (e.g. of a deformed space) instead of the model's own
   inner grid (an unbounded NeRF's background grid is used as it is);
-- `sample_transform(positions[S,3], dirs[S,3]) -> (positions, dirs, keep[S])`: called
-  between sampling and the field query; samples with keep False get density 0.
+- `sample_transform(positions[S,3], dirs[S,3]) -> (positions, dirs, keep[S])` or
+  `(positions, dirs, keep, density_scale[S])`: called between sampling and the field
+  query; samples with keep False get density 0, and with a `density_scale` each sample's
+  density is multiplied by it (ray bending: the rest-space length of the step, so a shell
+  stretched or squashed across the ray keeps its opacity).
 
 Early ray termination, in rounds: a chunk's live rays are marched a few occupied
 samples at a time (k per ray, growing as rays retire, ~*_SAMPLES_PER_ROUND per round),
@@ -231,9 +234,10 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
         if ray_idx.numel():
             pts = o[ray_idx] + d[ray_idx] * t[:, None]
             sdirs = d[ray_idx]
-            keep = None
+            keep = density_scale = None
             if sample_transform is not None:
-                pts, sdirs, keep = sample_transform(pts, sdirs)
+                pts, sdirs, keep, *extra = sample_transform(pts, sdirs)
+                density_scale = extra[0] if extra else None
             with torch.no_grad():
                 if keep is not None and not grad:
                     # Samples the transform dropped (vacated or unoccupied rest space) never reach the field.
@@ -249,6 +253,10 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
                     if keep is not None:
                         sigma = sigma * keep
                     n_density += ray_idx.numel()
+                if density_scale is not None:
+                    sigma = sigma * density_scale
+                    if grad:  # the second pass multiplies sigma by keep: let it carry the scale
+                        keep = density_scale if keep is None else keep * density_scale
                 tau = sigma * dt
                 trans = _exclusive_transmittance(tau, ray_idx, n) * transmittance[ray_idx].to(tau.dtype)
             if grad:
