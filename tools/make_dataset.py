@@ -29,34 +29,10 @@ Why Cycles on the CPU: it needs no GPU or display. With the bpy module headless
 64x48 view, while Cycles renders such a view in a few milliseconds to a tenth
 of a second and is deterministic for a given --seed.
 
-What is written (the NeRF-synthetic / instant-ngp form, read by the engine):
-
-    DIR/transforms.json        training views
-    DIR/images/r_<k>.png
-    DIR/test/transforms.json   only with --test-count N > 0: N other random
-    DIR/test/images/r_<k>.png  views, so that `engine eval --data DIR/test` works
-
-transforms.json keys:
-    camera_angle_x, camera_angle_y   field of view in radians (x: horizontal)
-    fl_x, fl_y, cx, cy               focal lengths and principal point, pixels
-    w, h                             image size, pixels
-    frames[]: file_path              relative to the json's folder, extension included
-              transform_matrix       camera-to-world 4x4: Blender's own
-                                     `matrix_world` of the camera that rendered
-                                     the view (no axis change)
-    aabb                             only with --aabb: [[x0, y0, z0], [x1, y1, z1]], the
-                                     box the object lies in (the engine's scene bounds)
-    generator                        how the views were made (tool, options)
-
-Camera convention (DESIGN.md): the camera looks down its local -Z with +Y up;
-pixel (i, j) (column i, row j counted from the top of the image) is the ray
-
-    d_camera = ((i + 0.5 - cx) / fl_x,  -(j + 0.5 - cy) / fl_y,  -1)
-
-through the pixel centre. Without lens shift and with square pixels,
-cx = w/2, cy = h/2 and fl_x = fl_y = 0.5 * w / tan(0.5 * camera_angle_x), so a
-reader that only knows `camera_angle_x` gets the same rays. With `--shift` or
-`--pixel-aspect` only the fl_x/fl_y/cx/cy form is exact.
+What is written (DIR/transforms.json, DIR/images/, and with --test-count N > 0 DIR/test/ for
+`engine eval --data DIR/test`), its keys and its camera convention (Blender's own camera-to-world
+matrices; pixel centres; fl_x/fl_y/cx/cy exact with --shift and --pixel-aspect): the docstring of
+`blender_nerf_deform/addon/dataset_capture.py`, which writes it.
 
 With --engine KEEP the .blend's own render engine and sampling settings render the views
 (only resolution, film transparency, output format and colour view are set, and the compositor,

@@ -33,13 +33,14 @@ from .jobs import WorkerOperator
 from .worker_client import PACKAGE_DIR_MODULE
 
 
-def default_run_folder(data: str) -> str:
-    """Beside the saved .blend (//nerf_runs/<name>), else in the extension's user folder."""
+def default_run_folder(data: str, create: bool = True) -> str:
+    """Beside the saved .blend (//nerf_runs/<name>), else in the extension's user folder (made only
+    with `create`: a panel's poll asks where a run would be without making folders)."""
     name = os.path.basename(os.path.normpath(data)) or "nerf"
     if bpy.data.filepath:
         return os.path.join(os.path.dirname(bpy.data.filepath), "nerf_runs", name)
     try:
-        root = bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, path="runs", create=True)
+        root = bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, path="runs", create=create)
     except (ValueError, AttributeError):  # imported directly, not enabled as an extension
         import tempfile
 

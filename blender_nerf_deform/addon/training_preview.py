@@ -59,9 +59,9 @@ def panel_checkpoints(context) -> list[str]:
     if t.run_folder:
         found.append(os.path.join(os.path.abspath(bpy.path.abspath(t.run_folder)), "nerf.ckpt"))
     elif t.data:
-        found.append(os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.data))), "nerf.ckpt"))
+        found.append(os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.data)), create=False), "nerf.ckpt"))
     if t.photos:
-        found.append(os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.photos))), "nerf.ckpt"))
+        found.append(os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.photos)), create=False), "nerf.ckpt"))
     return found
 
 

@@ -7,6 +7,7 @@ relative imports and `__package__`. Importing the package directly is a
 different path, so it is tested too.
 """
 
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -122,6 +123,20 @@ def test_capture_dataset_runs_from_the_installed_extension(installed, tmp_path):
     meta = json.loads((tmp_path / "data" / "transforms.json").read_text())
     assert len(meta["frames"]) == 2 and meta["generator"]["tool"].startswith("Capture Dataset")
     assert all((tmp_path / "data" / f["file_path"]).is_file() for f in meta["frames"])
+
+
+def test_preview_poll_makes_no_folders(installed, tmp_path):
+    """Asking whether a preview is possible (the panel polls it on every redraw) creates nothing in the
+    extension's user folder for an unsaved file; the run's folder is made when a training starts."""
+    bpy, _ = installed
+    runs = Path(bpy.utils.extension_path_user(EXT_MODULE)) / "runs"
+    shutil.rmtree(runs, ignore_errors=True)
+    bpy.context.scene.nerf_deform_training.data = str(tmp_path / "some_dataset")
+    bpy.context.scene.nerf_deform_training.photos = str(tmp_path / "some_photos")
+    assert not bpy.ops.nerf_deform.preview_training.poll()
+    assert not runs.exists()
+    train_ops = sys.modules[f"{EXT_MODULE}.addon.train_ops"]
+    assert Path(train_ops.default_run_folder(str(tmp_path / "some_dataset"))).parent == runs and runs.is_dir()
 
 
 def test_disabling_leaves_nothing_registered(installed):
