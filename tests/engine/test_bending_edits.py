@@ -139,7 +139,7 @@ def test_inverted_tets_give_no_nan_and_no_hole(model):
     assert folded[window][..., 3].min() > 0.95
     pts = torch.as_tensor(np.random.default_rng(0).uniform(deformed[star].min((0, 1)), deformed[star].max((0, 1)), (20000, 3)),
                           dtype=torch.float32)
-    p, d, _keep = bend.sample_transform(pts, torch.nn.functional.normalize(pts, dim=1))
+    p, d, _keep, *_ = bend.sample_transform(pts, torch.nn.functional.normalize(pts, dim=1))
     assert torch.isfinite(p).all() and torch.isfinite(d).all()
     assert (bend.deformed.locate(pts) >= 0).all()  # inside the box cage: no sample falls through the fold
 
@@ -260,7 +260,7 @@ def test_the_cpu_kernels_and_the_torch_path_agree(model):
             assert bend.use_kernels == (path == "auto") and bend.rest.backend == ("numba" if path == "auto" else "torch")
             bend.set_deformed(posed)
             results.append((bend.occupancy.aabb, bend.occupancy.mask, *bend.sample_transform(pts, dirs)))
-    (box_k, mask_k, p_k, d_k, keep_k), (box_t, mask_t, p_t, d_t, keep_t) = results
+    (box_k, mask_k, p_k, d_k, keep_k, s_k), (box_t, mask_t, p_t, d_t, keep_t, s_t) = results
     assert torch.equal(box_k, box_t)
     # The NeRF grid's cell corners lie on this box cage's faces, where the two locators may pick
     # different tets (measured: 8 of ~194,500 marked cells differ); both images are valid.
@@ -272,3 +272,6 @@ def test_the_cpu_kernels_and_the_torch_path_agree(model):
     turned = (d_k - d_t).abs().amax(dim=1) > 1e-5
     assert int(turned.sum()) <= 5, int(turned.sum())
     assert (keep_k != keep_t).sum() <= 2  # a sample exactly on a cell face may round either way
+    # The density scale (rest-space length of a unit step along the ray) is per tet, like the direction.
+    assert s_k.shape == s_t.shape == (len(pts),) and (s_k != 1).any()
+    assert int(((s_k - s_t).abs() > 1e-5).sum()) <= 5

@@ -11,13 +11,20 @@ import numpy as np
 
 from .. import backend
 
+# A density scale this close to 1 is 1: an identity pose's float32 affines (I up to rounding) leave
+# every density exactly as in an undeformed render.
+DENSITY_SCALE_SNAP = 1e-5
+
 if backend.HAVE_NUMBA:
     from numba import njit, prange
 
     @njit(parallel=True, cache=True)
-    def map_samples(P, D, tet, located, linear, offset, rotation, rotate, occ, olo, oext, ores, out_p, out_d, keep):
+    def map_samples(P, D, tet, located, linear, offset, rotation, rotate, occ, olo, oext, ores, out_p, out_d, keep,
+                    density, scale):
         """Per sample: the tet's affine (or identity outside every deformed tet), the rotated view
-        direction, and whether the rest point lies in an occupied cell of the NeRF's grid."""
+        direction, whether the rest point lies in an occupied cell of the NeRF's grid and (when
+        `density`) the density scale |A d| / |d|: how long a unit step along the ray is in rest space
+        (`density_scale`; 1 outside every tet, and within DENSITY_SCALE_SNAP of 1 it is exactly 1)."""
         for n in prange(P.shape[0]):
             x, y, z = P[n, 0], P[n, 1], P[n, 2]
             if tet[n] >= 0:
@@ -26,6 +33,13 @@ if backend.HAVE_NUMBA:
                 py = linear[t, 1, 0] * x + linear[t, 1, 1] * y + linear[t, 1, 2] * z + offset[t, 1]
                 pz = linear[t, 2, 0] * x + linear[t, 2, 1] * y + linear[t, 2, 2] * z + offset[t, 2]
                 dx, dy, dz = D[n, 0], D[n, 1], D[n, 2]
+                if density:
+                    ax = linear[t, 0, 0] * dx + linear[t, 0, 1] * dy + linear[t, 0, 2] * dz
+                    ay = linear[t, 1, 0] * dx + linear[t, 1, 1] * dy + linear[t, 1, 2] * dz
+                    az = linear[t, 2, 0] * dx + linear[t, 2, 1] * dy + linear[t, 2, 2] * dz
+                    dd = dx * dx + dy * dy + dz * dz
+                    s = np.sqrt((ax * ax + ay * ay + az * az) / dd) if dd > 0 else 1.0
+                    scale[n] = 1.0 if abs(s - 1.0) <= DENSITY_SCALE_SNAP else s
                 if rotate:
                     out_d[n, 0] = rotation[t, 0, 0] * dx + rotation[t, 0, 1] * dy + rotation[t, 0, 2] * dz
                     out_d[n, 1] = rotation[t, 1, 0] * dx + rotation[t, 1, 1] * dy + rotation[t, 1, 2] * dz
@@ -35,6 +49,8 @@ if backend.HAVE_NUMBA:
             else:
                 px, py, pz = x, y, z
                 out_d[n, 0], out_d[n, 1], out_d[n, 2] = D[n, 0], D[n, 1], D[n, 2]
+                if density:
+                    scale[n] = 1.0
             out_p[n, 0], out_p[n, 1], out_p[n, 2] = px, py, pz
             # Same float32 formula as OccupancyGrid.cell_index, so identity poses match undeformed renders.
             gx = np.floor((px - olo[0]) / oext[0] * ores)

@@ -6,6 +6,15 @@ Every ray sample in deformed space is decided on its own (not per grid cell):
   T_rest · T_deformed⁻¹ and the NeRF is queried there; its view direction is
   turned by the rotation of that affine (polar decomposition), so
   view-dependent colour follows the surface (switch: `rotate_directions`);
+- stretch and compression along the ray (issue 18): each sample's density is
+  scaled by |A d| (A: its tet's deformed→rest linear part, d the unit ray), the
+  rest-space length of a unit step, so the NeRF's opacity is integrated over
+  the rest-space path (a shell squashed across the ray stays as opaque; one
+  stretched across it does not thicken; switch: `density_correction`; 1 exactly
+  for an identity pose); where a pose compresses the content by more than
+  STEP_REFINE_FROM, frames march with a finer step (`render_kwargs`), so a
+  squashed shell is not stepped over. Strong smooth stretches need a cage fine
+  enough to follow them: `geometry.cage.refine_cage` (`cage --refine-edge`);
 - outside the deformed cage but inside the rest cage: empty (density 0), so
   space an edit vacates shows the background, not a ghost of the original;
 - outside both: unchanged (the rest of the scene stays where it was).
@@ -59,6 +68,12 @@ def polar_rotations(linear: np.ndarray) -> np.ndarray:
 
 _CORNERS = np.array([[k & 1, (k >> 1) & 1, k >> 2] for k in range(8)])
 
+# Where a pose compresses the NeRF's content (a deformed step covers more than one rest step), frames
+# march with a finer step: render_step / (the largest rest length of a unit deformed step over the tets
+# that hold content), once that exceeds STEP_REFINE_FROM, at most MAX_STEP_REFINE times finer.
+STEP_REFINE_FROM = 1.5
+MAX_STEP_REFINE = 4.0
+
 
 class CageBend:
     """The deformed→rest map of one cage pose, as a `sample_transform` and an occupancy for the renderer.
@@ -67,13 +82,15 @@ class CageBend:
     in it); `set_deformed(V)` once per pose.
     """
 
-    def __init__(self, model, rest_vertices, tets, *, rotate_directions: bool = True, max_occupancy_resolution: int = 256):
+    def __init__(self, model, rest_vertices, tets, *, rotate_directions: bool = True, density_correction: bool = True,
+                 max_occupancy_resolution: int = 256):
         self.model = model
         self.device = model.device
         self.rest_vertices = np.asarray(rest_vertices, dtype=np.float64)
         self.tets = np.asarray(tets, dtype=np.int64)
         self.rest = TetLocator(self.rest_vertices, self.tets, device=self.device)
         self.rotate_directions = rotate_directions
+        self.density_correction = density_correction
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None
         self._rest_inverse = tet_inverses(self.rest_vertices, self.tets)
@@ -137,21 +154,52 @@ class CageBend:
         self.located_tets = torch.as_tensor(located, dtype=torch.int64, device=self.device)
         self.deformed_bounds = np.stack([deformed.min(0), deformed.max(0)])
         self.occupancy = self._deformed_occupancy(deformed, forward)
+        self.step_refine = self._step_refine(affine[:, :3, :3], bad)
+        self.render_step = self.model.config.render_step / self.step_refine
         return self
+
+    def _step_refine(self, linear: np.ndarray, bad: np.ndarray) -> float:
+        """How much finer than the NeRF's render step this pose's frames march: the largest singular
+        value of the deformed→rest linear part over the tets that hold the NeRF's occupied cells (a
+        squash to 0.5x makes each deformed step two rest steps, so a thin shell would be undersampled),
+        1 below STEP_REFINE_FROM, at most MAX_STEP_REFINE."""
+        content = self._content_tets
+        if len(bad):
+            content = np.setdiff1d(content, bad)
+        if len(content) == 0:
+            return 1.0
+        a = linear[content]
+        largest = float(np.sqrt(np.linalg.eigvalsh(np.einsum("nji,njk->nik", a, a))[:, -1].max()))
+        if not np.isfinite(largest) or largest <= STEP_REFINE_FROM:
+            return 1.0
+        return min(largest, MAX_STEP_REFINE)
+
+    def render_kwargs(self) -> dict:
+        """What `render_image` / `render_rays` take to render the current pose."""
+        kw = {"sample_transform": self.sample_transform, "occupancy": self.occupancy}
+        if self.step_refine != 1.0:
+            kw["step"] = self.render_step
+        return kw
 
     @torch.no_grad()
     def sample_transform(self, positions: torch.Tensor, dirs: torch.Tensor):
-        """Renderer hook: (positions, dirs) in deformed space → (rest positions, rest dirs, keep)."""
+        """Renderer hook: (positions, dirs) in deformed space → (rest positions, rest dirs, keep) and,
+        with `density_correction`, the density scale |A d| / |d| (A: the tet's deformed→rest linear
+        part): the rest-space length of a unit step along the ray. Volume rendering integrates the
+        rest density over the rest-space path, so a shell squashed across the ray keeps its opacity
+        instead of thinning (and one stretched across it does not thicken)."""
         tet = self.deformed.locate(positions).to(positions.device)
         occ = self.model.occupancy
+        scale = None
         if self.use_kernels and positions.device.type == "cpu":
             p, d = torch.empty_like(positions), torch.empty_like(dirs)
             keep = torch.empty(len(positions), dtype=torch.bool)
+            scale = torch.empty(len(positions) if self.density_correction else 0, dtype=positions.dtype)
             box = occ.aabb.reshape(2, 3)
             bend_kernels.map_samples(positions.contiguous().numpy(), dirs.contiguous().numpy(), tet.numpy(), self.located_tets.numpy(),
                          self.linear.numpy(), self.offset.numpy(), self.rotation.numpy(), self.rotate_directions,
                          occ.mask.numpy(), box[0].numpy(), (box[1] - box[0]).numpy(), np.float32(occ.resolution),
-                         p.numpy(), d.numpy(), keep.numpy())
+                         p.numpy(), d.numpy(), keep.numpy(), self.density_correction, scale.numpy())
             inside = tet >= 0
         else:
             inside = tet >= 0
@@ -160,6 +208,12 @@ class CageBend:
             p[inside] = torch.einsum("nij,nj->ni", self.linear[t], positions[inside]) + self.offset[t]
             if self.rotate_directions:
                 d[inside] = torch.einsum("nij,nj->ni", self.rotation[t], dirs[inside])
+            if self.density_correction:
+                di = dirs[inside]
+                s = torch.einsum("nij,nj->ni", self.linear[t], di).norm(dim=-1) / di.norm(dim=-1).clamp_min(1e-30)
+                s = torch.where((s - 1.0).abs() <= bend_kernels.DENSITY_SCALE_SNAP, torch.ones_like(s), s)
+                scale = torch.ones(len(positions), dtype=positions.dtype, device=positions.device)
+                scale[inside] = s
             # As in an undeformed render, the NeRF is empty wherever its own occupancy grid says so.
             keep = occ.occupied(p)
         if self.model.background is not None:
@@ -170,6 +224,8 @@ class CageBend:
         outside = torch.nonzero(~inside & keep).squeeze(1)
         if len(outside):
             keep[outside] = ~self.rest.contains(positions[outside]).to(positions.device)
+        if self.density_correction:
+            return p, d, keep, scale
         return p, d, keep
 
     def _locate_rest_cells(self):
@@ -187,6 +243,7 @@ class CageBend:
         corner_tet = self.rest.locate((box[0] + lattice.double() * cell).to(self.device)).cpu()
         self._cell_ijk = ijk.numpy().astype(np.int64)
         self._corner_tet = corner_tet[cell_corner].reshape(-1, 8).numpy().astype(np.int64)
+        self._content_tets = np.unique(self._corner_tet[self._corner_tet >= 0])
         self._rest_lo = box[0].numpy()
         self._rest_cell = cell.numpy()
 

@@ -30,7 +30,7 @@ class PosedRenderer:
             if self._pose is None or self._pose.shape != pose.shape or not np.array_equal(self._pose, pose):
                 self.bend.set_deformed(pose)
                 self._pose = pose.copy()
-            extra = {"sample_transform": self.bend.sample_transform, "occupancy": self.bend.occupancy}
+            extra = self.bend.render_kwargs()
         out = render_image(self.model, camera, progress=progress, **extra)
         out["inversion"] = self.bend.inversion if extra else None
         return out

@@ -103,6 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default 3%% of the mesh's diagonal; widened where the NeRF's density is still soft there)")
     p.add_argument("--edge-length", type=float, metavar="L", help="target tet edge length, world units")
     p.add_argument("--target-tets", type=int, metavar="N", help="approximate number of tets (ignored with --edge-length)")
+    p.add_argument("--refine-edge", type=float, metavar="L", help="then refine (longest-edge bisection) every tet whose "
+                   "longest edge exceeds L, within --refine-box: where a pose will stretch or bend sharply (a smooth "
+                   "stretch across a band narrower than a few tets smears with a coarse cage)")
+    p.add_argument("--refine-box", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="where --refine-edge applies (tets whose centroid is inside; default: the whole cage)")
     p.add_argument("--threshold", type=float, metavar="T", help="surface density threshold used for extraction (default 10)")
     p.add_argument("--region", metavar="REGION.json", help="the edit region the mesh was extracted in: recorded in the "
                    "cage, and where the mesh has no cut flags its vertices on the region's boundary are the cut")

@@ -2,7 +2,10 @@
 
     python -m blender_nerf_deform.engine cage --nerf CKPT --mesh MESH.ply --out CAGE.npz
         [--margin M] [--edge-length L] [--target-tets N] [--threshold T]
-        [--region REGION.json] [--no-pin-cut]
+        [--region REGION.json] [--no-pin-cut] [--refine-edge L [--refine-box XMIN YMIN ZMIN XMAX YMAX ZMAX]]
+
+--refine-edge refines the built cage where a pose will stretch (geometry.cage.refine_cage):
+the tets stay fixed over an animation, so a finer cage is chosen here, once.
 
 Where the mesh was closed along an edit region's cut (its `nerf_cut` vertices, or with
 --region its vertices on the region's boundary), the cage vertices there are pinned
@@ -16,8 +19,9 @@ import sys
 import numpy as np
 
 from ..files import check_writable
+from ..errors import EngineError
 from ..geometry.cage import (build_nerf_cage, build_part_cages, check_cage_options, cut_from_region, cut_pins,
-                             part_cut_pins, vertices_outside)
+                             part_cut_pins, refine_cage, vertices_outside)
 from ..geometry.mesh_io import read_ply, save_cage
 from ..geometry.region import load_region
 from ..nerf.checkpoint import load_nerf
@@ -25,6 +29,12 @@ from ..nerf.checkpoint import load_nerf
 
 def main(args) -> int:
     check_cage_options(args.margin, args.edge_length, args.target_tets, args.threshold)
+    refine_edge, refine_box = getattr(args, "refine_edge", None), getattr(args, "refine_box", None)
+    if refine_box is not None and refine_edge is None:
+        raise EngineError("--refine-box needs --refine-edge (the edge length to refine to)")
+    if refine_edge is not None and not refine_edge > 0:
+        raise EngineError(f"--refine-edge must be a positive length, got {refine_edge}")
+    box = None if refine_box is None else np.asarray(refine_box, dtype=np.float64).reshape(2, 3)
     region = load_region(args.region) if args.region else None
     check_writable(args.out)
     verts, faces, _, cut, part = read_ply(args.mesh, with_cut=True, with_part=True)
@@ -35,8 +45,14 @@ def main(args) -> int:
     def build_one(V, F, index=None):
         name = f"mesh {args.mesh}" + (f" (edit region {index + 1})" if index is not None else "")
         own_cut = cut if cut is None or index is None else cut[part == index]
-        return build_nerf_cage(V, F, nerf, args.margin, args.threshold, edge_length=args.edge_length,
+        cage = build_nerf_cage(V, F, nerf, args.margin, args.threshold, edge_length=args.edge_length,
                                target_tets=args.target_tets, name=name, cut=own_cut)
+        if refine_edge is not None:
+            before = len(cage.tets)
+            cage.vertices, cage.tets = refine_cage(cage.vertices, cage.tets, refine_edge, box)
+            print(f"cage: refined to longest edges <= {refine_edge:g}" + ("" if box is None else " in the box")
+                  + f": {before} -> {len(cage.tets)} tets")
+        return cage
 
     aabb = nerf.aabb.detach().cpu().double().numpy().reshape(2, 3)
     extra = {}

@@ -439,3 +439,82 @@ def part_cut_pins(cage_vertices: np.ndarray, cage_part: np.ndarray, mesh_vertice
         own_cage, own_mesh = np.flatnonzero(cage_part == i), np.flatnonzero(mesh_part == i)
         out.append(own_cage[cut_pins(cage_vertices[own_cage], mesh_vertices[own_mesh], cut[own_mesh], margin)])
     return np.sort(np.concatenate(out)).astype(np.int64)
+
+
+_TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+
+
+def refine_cage(vertices: np.ndarray, tets: np.ndarray, max_edge: float, box=None,
+                max_passes: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """A finer cage where a pose will vary fast: longest-edge bisection of the tets (inside `box`,
+    a (2, 3) lo/hi, or everywhere) whose longest edge exceeds `max_edge`.
+
+    A ray-bent frame is the piecewise-affine map of the cage, so where a pose's deformation
+    gradient changes within a tet (a smooth stretch across a band narrower than a few tets) the
+    surface lands off its place and smears; the cage is built once for all frames, so it is
+    refined here, at build time, where the user will stretch. Conforming (every split edge is
+    split in all its tets, in passes of edges that share no tet: the longest of each tet wins),
+    the boundary surface is unchanged (new boundary vertices lie on its faces), every tet keeps a
+    positive volume (each split halves one), and the original vertices keep their indices
+    (new ones are appended). Returns (vertices, tets)."""
+    V = np.asarray(vertices, dtype=np.float64)
+    T = np.asarray(tets, dtype=np.int64)
+    if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
+        raise EngineError(f"refine_cage: need (N,3) vertices and (M,4) tets, got {V.shape} and {T.shape}")
+    if not np.isfinite(V).all() or T.min() < 0 or T.max() >= len(V):
+        raise EngineError("refine_cage: vertices must be finite and tets index them")
+    if not (isinstance(max_edge, (int, float)) and np.isfinite(max_edge) and max_edge > 0):
+        raise EngineError(f"cage refinement edge length must be a positive number, got {max_edge!r}")
+    if box is not None:
+        box = np.asarray(box, dtype=np.float64)
+        if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[1] >= box[0]).all():
+            raise EngineError(f"cage refinement box must be (lo xyz, hi xyz) with hi >= lo, got {box.tolist()}")
+    parts = [V]
+    n_vertices = len(V)
+    for _ in range(max_passes):
+        allv = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        parts = [allv]
+        pairs = np.sort(T[:, _TET_EDGES], axis=2)  # (M, 6, 2)
+        length = np.linalg.norm(allv[pairs[..., 0]] - allv[pairs[..., 1]], axis=2)  # (M, 6)
+        longest = length.argmax(axis=1)
+        todo = length[np.arange(len(T)), longest] > max_edge
+        if box is not None:
+            c = allv[T].mean(axis=1)
+            todo &= ((c >= box[0]) & (c <= box[1])).all(axis=1)
+        if not todo.any():
+            break
+        edges, inverse = np.unique(pairs.reshape(-1, 2), axis=0, return_inverse=True)
+        inverse = inverse.reshape(len(T), 6)
+        # Marked: the longest edge of every tet to refine. Priority: longer first (ties by edge id).
+        marked = np.zeros(len(edges), dtype=bool)
+        marked[inverse[np.flatnonzero(todo), longest[todo]]] = True
+        elen = np.zeros(len(edges))
+        elen[inverse.ravel()] = length.ravel()
+        order = np.lexsort((np.arange(len(edges)), -elen))
+        rank = np.empty(len(edges), dtype=np.int64)
+        rank[order] = np.arange(len(edges))
+        big = np.iinfo(np.int64).max
+        tet_rank = np.where(marked[inverse], rank[inverse], big)  # (M, 6)
+        claim = tet_rank.min(axis=1)
+        # An edge is split this pass if it is the claim of every tet around it.
+        ok = np.ones(len(edges), dtype=bool)
+        np.logical_and.at(ok, inverse.ravel(), (~marked[inverse] | (tet_rank == claim[:, None])).ravel())
+        split = marked & ok
+        new_id = np.full(len(edges), -1, dtype=np.int64)
+        new_id[split] = len(allv) + np.arange(int(split.sum()))
+        parts.append(0.5 * (allv[edges[split, 0]] + allv[edges[split, 1]]))
+        local = np.where(split[inverse], np.arange(6)[None, :], -1).max(axis=1)  # at most one per tet
+        cut = local >= 0
+        t_cut, loc = T[cut], _TET_EDGES[local[cut]]
+        mid = new_id[inverse[cut, local[cut]]]
+        rows = np.arange(len(t_cut))
+        a, b = t_cut.copy(), t_cut.copy()
+        a[rows, loc[:, 1]] = mid  # (.., m in place of the edge's second vertex)
+        b[rows, loc[:, 0]] = mid  # (.., m in place of its first)
+        T = np.concatenate([T[~cut], a, b])
+    else:
+        raise EngineError(f"cage refinement did not finish in {max_passes} passes (max edge {max_edge:g} too small "
+                          "for the cage)")
+    allv = parts[0] if len(parts) == 1 else np.concatenate(parts)
+    assert allv[:n_vertices].shape == V.shape
+    return allv, T
