@@ -57,6 +57,18 @@ def test_refining_with_bad_input_is_an_engine_error(bad):
         refine_cage(V, T, kw["max_edge"], kw["box"])
 
 
+def test_the_cage_command_refuses_a_refinement_box_without_an_edge_length(tmp_path):
+    import subprocess
+
+    for extra, message in ((["--refine-box", 0, 0, 0, 1, 1, 1], "--refine-box needs --refine-edge"),
+                           (["--refine-edge", -0.1], "--refine-edge must be a positive length")):
+        proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "cage", "--nerf", tmp_path / "n.ckpt",
+                               "--mesh", tmp_path / "m.ply", "--out", tmp_path / "c.npz", *map(str, extra)],
+                              cwd=REPO, capture_output=True, text=True)
+        assert proc.returncode != 0 and message in proc.stderr + proc.stdout, proc.stderr
+        assert not (tmp_path / "c.npz").exists()
+
+
 def test_a_refined_cage_carries_the_stretch_map_close_to_exact():
     """The benchmark's stretch (a band 0.3 tall stretched 2.7x, 3.55x at its middle) on a cage with the
     engine's default-sized tets (~0.2) puts the bar's surface off its place; refining the band fixes it."""
