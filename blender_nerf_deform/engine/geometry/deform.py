@@ -152,7 +152,8 @@ class ArapResult:
     iterations: int
     last_step: float  # largest vertex move of the last iteration, relative to the cage's diagonal
     converged: bool
-    seconds: float
+    seconds: float  # the whole solve, the flip-free step included
+    injective: object = None  # injective.InjectiveResult of the flip-free step, when it was asked for
 
 
 class ArapDeformer:
@@ -218,6 +219,7 @@ class ArapDeformer:
         # The energy's quadratic form sum w |u_i - u_j|^2 (= -igl.cotmatrix), assembled from the same weights.
         i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self._W.ravel()
         L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))), shape=(n, n)).tocsr()
+        self._L = L
         constrained = np.zeros(n, dtype=bool)
         constrained[self.b] = True
         self._free = np.flatnonzero(~constrained)
@@ -309,9 +311,23 @@ class ArapDeformer:
                 out[own] = linear_blend(self.rest[own], [r for r, _ in mine], [A for _, A in mine])
         return out
 
-    def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None, strict: bool = False) -> ArapResult:
+    def injective_step(self):
+        """The flip-free step of this deformer (engine/geometry/injective.py), made on first use."""
+        if getattr(self, "_injective", None) is None:
+            from .injective import InjectiveStep
+
+            self._injective = InjectiveStep(self)
+        return self._injective
+
+    def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None,
+              strict: bool = False, injective: bool = True) -> ArapResult:
         """Iterate from `initial` (default: the linear blend of the handles' affines, a deterministic
-        start that is already right for rigid motions) until converged or `max_iter` iterations."""
+        start that is already right for rigid motions) until converged or `max_iter` iterations.
+
+        `injective` (numba backend): where the result has a tet with det F below the flip-free
+        step's threshold (0.1), that step follows (injective.py): no tet inverted, the handles on
+        their targets, continuous in the pose; a result without such a tet is returned as ARAP
+        gave it. Its report is the result's `injective`."""
         t0 = time.perf_counter()
         bc = self.constraints(transforms)
         if initial is None:
@@ -319,14 +335,19 @@ class ArapDeformer:
         U = np.array(initial, dtype=np.float64)
         U[self.b] = bc
         U, it, step = self._iterate(bc, U, max_iter, tol)
-        res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0)
-        if strict and not res.converged:
+        if strict and step >= tol:
             raise EngineError(f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, tolerance {tol:.0e})")
+        report = None
+        if injective and self.backend == "numba":
+            report = self.injective_step()(U, bc)
+            U = report.vertices
+        res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0, report)
         self.U = U
         return res
 
     def step(self, transforms: list, iterations: int = 1) -> ArapResult:
-        """A fixed number of iterations warm-started from the previous result (interactive preview)."""
+        """A fixed number of iterations warm-started from the previous result (interactive preview).
+        No flip-free step here: `solve` is what renders and the add-on's preview use."""
         t0 = time.perf_counter()
         bc = self.constraints(transforms)
         U = np.array(self.rest if self.U is None else self.U, dtype=np.float64)
@@ -393,12 +414,13 @@ class RegionDeformer:
 
     def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_regions: list,
                  pin_region: np.ndarray | None = None, names: list[str] | None = None, mode: str = "ARAP",
-                 cage_pins: np.ndarray | None = None):
+                 cage_pins: np.ndarray | None = None, injective: bool = True):
         """`pin_region`: surface vertices the artist pinned; `cage_pins`: cage vertices pinned where
-        an edit region cut the scene (cage.cut_pins). A handle's region wins over the cut's pins."""
+        an edit region cut the scene (cage.cut_pins). A handle's region wins over the cut's pins.
+        `injective`: ARAP's result gets the flip-free step (ArapDeformer.solve) where it needs it."""
         if mode not in ("ARAP", "AFFINE"):
             raise EngineError(f"unknown deformation mode {mode!r}: ARAP or AFFINE")
-        self.mode = mode
+        self.mode, self.injective = mode, bool(injective)
         self.rest = np.asarray(rest_vertices, dtype=np.float64)
         names = list(names or [f"handle {i}" for i in range(len(handle_regions))])
         pins = [np.asarray(pin_region, dtype=np.int64)] if pin_region is not None and len(pin_region) else []
@@ -431,6 +453,10 @@ class RegionDeformer:
             for region, transform in zip(self.cage_regions, transforms):
                 deformed = affine_region(deformed, region, transform)
             return deformed, {}
-        result = self.arap.solve(transforms)
-        return result.vertices, {"iterations": result.iterations, "converged": bool(result.converged),
-                                 "solve_s": result.seconds}
+        result = self.arap.solve(transforms, injective=self.injective)
+        stats = {"iterations": result.iterations, "converged": bool(result.converged), "solve_s": result.seconds}
+        step = result.injective
+        if step is not None and step.ran:
+            stats.update(arap_inverted_tets=step.inverted_before, injective_iterations=step.iterations,
+                         injective_start=step.start, injective_s=step.seconds, handle_residual=step.handle_residual)
+        return result.vertices, stats
