@@ -2,18 +2,23 @@
 """Train NeRF from Blender vs the command line, same data and budget: what the UI costs in steps.
 
     flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench_train_ui.py --data ../shared/datasets/lego_200 \
-        [--seconds 60] [--work DIR]
+        [--seconds 60] [--rounds 2] [--warmup-steps 3] [--work DIR]
 
-Three runs of the same time budget (the trainer's own training time, so start-up is not
-counted) on the same data, one after the other:
+Three paths, the same time budget (the trainer's own training time, so start-up is not
+counted) on the same data:
   cli     `python -m blender_nerf_deform.engine train` in a subprocess (no Blender);
   ui      what the Train NeRF button does: the request submitted to the worker from Blender (the
           bpy module), progress drained by a 0.1 s timer on the main thread as the modal
           operator's timer does, the status text formatted each tick;
   script  `bpy.ops.nerf_deform.train_nerf(...)` (execute: blocking, as in `blender -b`).
-Each run starts its own process (the worker is restarted between ui and script), so each pays
-the kernels' compilation in its first step alike. Prints steps reached, batch PSNR and the `eval` PSNR of each checkpoint on the dataset's views,
-and the steps of ui and script as a fraction of cli.
+Each run starts its own process (the worker is restarted between runs). First a warm-up of
+--warmup-steps steps through the command line and through the worker: each compiles its numba
+kernels into its own cache (the command line's beside the sources, the worker's in its working
+folder), and a cold cache costs ~10 s of the first step, which would otherwise land in whichever run
+comes first; the warm-up's trainer seconds are printed (the one-time cost of a fresh install).
+Then --rounds rounds of the three, the order rotated each round so that the machine's drift falls
+on every path alike. Prints each run's steps, batch PSNR and the `eval` PSNR of the last round's
+checkpoints on the dataset's views, and the mean steps of ui and script as a fraction of cli's.
 """
 
 from __future__ import annotations
@@ -41,23 +46,25 @@ def eval_psnr(ckpt: Path, data: str) -> float:
     return float(found[-1]) if found else float("nan")
 
 
-def run_cli(data: str, out: Path, seconds: float) -> dict:
+def run_cli(data: str, out: Path, seconds: float | None, steps: int | None) -> dict:
+    budget = ["--max-seconds", str(seconds)] if seconds else ["--steps", str(steps)]
     proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "train", "--data", data, "--out", str(out),
-                           "--max-seconds", str(seconds)], capture_output=True, text=True, cwd=REPO)
+                           *budget], capture_output=True, text=True, cwd=REPO)
     if proc.returncode != 0:
         raise SystemExit(f"train failed: {proc.stderr[-2000:]}")
     return json.loads((out / "train.json").read_text())
 
 
-def run_ui(bpy, data: str, out: Path, seconds: float) -> dict:
+def run_ui(bpy, data: str, out: Path, seconds: float | None, steps: int | None) -> dict:
     """The modal operator's path, without a window: submit, then drain on a 0.1 s tick."""
     from blender_nerf_deform.addon import jobs
 
     client = jobs.worker(bpy.context)
     client.ensure_started()
     state = {"done": None, "progress": 0.0, "message": "", "ticks": 0}
+    budget = {"max_seconds": float(seconds)} if seconds else {"steps": int(steps)}
     client.submit("train", {"data": data, "out": str(out), "device": "auto", "downscale": 1, "resume": False,
-                            "max_seconds": float(seconds)}, None,
+                            **budget}, None,
                   on_done=lambda result, arrays: state.update(done=("ok", result)),
                   on_error=lambda error: state.update(done=("error", error)),
                   on_progress=lambda f, msg: state.update(progress=f, message=msg))
@@ -73,9 +80,6 @@ def run_ui(bpy, data: str, out: Path, seconds: float) -> dict:
 
 
 def run_script(bpy, data: str, out: Path, seconds: float) -> dict:
-    from blender_nerf_deform.addon import worker_client
-
-    worker_client.shutdown()  # a fresh worker, as cli and ui have: each run compiles its kernels once
     result = bpy.ops.nerf_deform.train_nerf(data=data, run_folder=str(out), seconds=seconds)
     if result != {"FINISHED"}:
         raise SystemExit(f"bpy.ops.nerf_deform.train_nerf returned {result}")
@@ -86,6 +90,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--warmup-steps", type=int, default=3)
     p.add_argument("--work", type=Path, default=None)
     args = p.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_train_ui_"))
@@ -96,21 +102,37 @@ def main(argv=None) -> int:
     import bpy
 
     import blender_nerf_deform
+    from blender_nerf_deform.addon import worker_client
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     blender_nerf_deform.register()
+    paths = {"cli": lambda out: run_cli(data, out, args.seconds, None),
+             "ui": lambda out: run_ui(bpy, data, out, args.seconds, None),
+             "script": lambda out: run_script(bpy, data, out, args.seconds)}
+    runs: dict[str, list[dict]] = {name: [] for name in paths}
     try:
-        runs = {"cli": run_cli(data, work / "cli", args.seconds),
-                "ui": run_ui(bpy, data, work / "ui", args.seconds),
-                "script": run_script(bpy, data, work / "script", args.seconds)}
+        warm_cli = run_cli(data, work / "warmup_cli", None, args.warmup_steps)
+        warm_ui = run_ui(bpy, data, work / "warmup_ui", None, args.warmup_steps)
+        print(f"warm-up ({args.warmup_steps} steps, trainer seconds, kernels compiled if their cache was cold): "
+              f"cli {warm_cli['seconds']:.1f} s, worker {warm_ui['seconds']:.1f} s", flush=True)
+        names = list(paths)
+        for r in range(args.rounds):
+            for name in names[r % 3:] + names[: r % 3]:
+                worker_client.shutdown()  # a fresh worker for each run, as each cli run is a fresh process
+                summary = paths[name](work / f"{name}_{r}")
+                runs[name].append(summary)
+                print(f"round {r + 1} {name:7s} steps {summary['steps']:6d}", flush=True)
     finally:
         blender_nerf_deform.unregister()
-    print(f"data {data}, budget {args.seconds:.0f} s of training each")
-    for name, summary in runs.items():
-        psnr = eval_psnr(work / name / "nerf.ckpt", data)
-        ratio = summary["steps"] / runs["cli"]["steps"]
-        print(f"{name:7s} steps {summary['steps']:6d} ({ratio:6.1%} of cli)  batch PSNR {summary.get('psnr', float('nan')):.2f} dB"
-              f"  eval PSNR {psnr:.2f} dB  training {summary.get('seconds', float('nan')):.1f} s")
+    print(f"data {data}, budget {args.seconds:.0f} s of training each, {args.rounds} rounds")
+    cli_mean = sum(s["steps"] for s in runs["cli"]) / len(runs["cli"])
+    last = args.rounds - 1
+    for name, summaries in runs.items():
+        steps = [s["steps"] for s in summaries]
+        mean = sum(steps) / len(steps)
+        psnr = eval_psnr(work / f"{name}_{last}" / "nerf.ckpt", data)
+        print(f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  mean {mean:8.1f} ({mean / cli_mean:6.1%} of cli)"
+              f"  batch PSNR {summaries[-1].get('psnr', float('nan')):.2f} dB  eval PSNR {psnr:.2f} dB (round {last + 1})")
     return 0
 
 
