@@ -115,7 +115,7 @@ def main() -> int:
                      stats.get("injective_iterations", 0), stats.get("injective_start", "-"),
                      stats.get("handle_residual", 0.0), moved, bool(np.array_equal(again, b))))
     print("| frame | inverted tets, ARAP alone | min det F | inverted tets, ARAP + step | min det F | solve ms, ARAP alone | "
-          "solve ms, ARAP + step | step iterations | step's start | handle residual before snap (/ diagonal) | "
+          "solve ms, ARAP + step | step iterations | step's start | handle residual (/ diagonal) | "
           "largest vertex change (/ diagonal) | same result twice |")
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | --- |")
     for r in rows:
