@@ -81,7 +81,8 @@ def main() -> int:
             per.append(r.seconds)
         per = np.array(per)
         stepped = r.vertices
-        conv = arap.solve([transform(args.frames)], max_iter=200, tol=1e-4)
+        # ARAP alone (its own figures; the flip-free step after it: tools/bench_arap_injectivity.py).
+        conv = arap.solve([transform(args.frames)], max_iter=200, tol=1e-4, injective=False)
         inv = inversion_report(V, conv.vertices, T)
         print(
             f"{backend} {energy}: precompute {pre:.2f} s; per-frame step ({args.iters} iteration(s), warm start) "
