@@ -158,8 +158,47 @@ if backend.HAVE_NUMBA:
             counts[a] = n
 
 
+    @njit(parallel=True, cache=True)
+    def _gather_samples(o, d, alive, ts, dts, counts, starts, ray_out, t_out, dt_out, p_out, dir_out):
+        # No fastmath: o + d * t rounds as torch's separate multiply and add do (same sample positions).
+        for a in prange(alive.shape[0]):
+            ray = alive[a]
+            s0 = starts[a]
+            for j in range(counts[a]):
+                s = s0 + j
+                t = ts[a, j]
+                ray_out[s] = ray
+                t_out[s] = t
+                dt_out[s] = dts[a, j]
+                for c in range(3):
+                    p_out[s, c] = o[ray, c] + d[ray, c] * t
+                    dir_out[s, c] = d[ray, c]
+
+
 def _np(x):
     return x.contiguous().numpy()
+
+
+def gather_samples(o, d, alive, ts, dts, counts):
+    """The samples of one round, flat and sorted by ray then t: (ray index, t, dt, position o + t d, direction).
+
+    `ts`, `dts` (A, k) and `counts` (A,) as `march_round` returns them for the rays `alive`."""
+    if backend.use_kernels(o.device) and ts.device.type == "cpu":
+        counts_np = counts.numpy()
+        starts = np.cumsum(counts_np) - counts_np
+        n = int(counts_np.sum())
+        ray = np.empty(n, np.int64)
+        t, dt = np.empty(n, np.float32), np.empty(n, np.float32)
+        p, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        _gather_samples(_np(o), _np(d), _np(alive), ts.numpy(), dts.numpy(), counts_np, starts, ray, t, dt, p, v)
+        return torch.from_numpy(ray), torch.from_numpy(t), torch.from_numpy(dt), torch.from_numpy(p), torch.from_numpy(v)
+    dev = o.device
+    k = ts.shape[1]
+    valid = torch.arange(k, device=dev)[None, :] < counts.to(dev)[:, None]
+    a, slot = torch.nonzero(valid, as_tuple=True)
+    ray = alive[a]
+    t = ts.to(dev)[a, slot]
+    return ray, t, dts.to(dev)[a, slot], o[ray] + d[ray] * t[:, None], d[ray]
 
 
 def _march_round_cpu(o, d, alive, state: MarchState, k: int, g: Grids):

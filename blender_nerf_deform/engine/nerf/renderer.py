@@ -43,6 +43,7 @@ Depth is the expected distance along the (unit) ray direction, divided by alpha;
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Callable
 
@@ -62,11 +63,16 @@ SampleTransform = Callable[[torch.Tensor, torch.Tensor], tuple]
 
 def camera_rays(camera: Camera, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """World-space origins (H*W, 3) and unit directions (H*W, 3), row-major from the top-left pixel."""
+    pixels = torch.arange(camera.width * camera.height, dtype=torch.int64)
+    return pixel_rays(camera, pixels, device)
+
+
+def pixel_rays(camera: Camera, pixels: torch.Tensor, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """`camera_rays` of the given pixels only (flat row-major indices j * width + i)."""
     c2w = torch.as_tensor(np.asarray(camera.c2w, dtype=np.float64)[:3, :4], dtype=torch.float64)
-    i = torch.arange(camera.width, dtype=torch.float64) + 0.5
-    j = torch.arange(camera.height, dtype=torch.float64) + 0.5
-    jj, ii = torch.meshgrid(j, i, indexing="ij")
-    d = camera_directions(camera.fx, camera.fy, camera.cx, camera.cy, ii.reshape(-1), jj.reshape(-1), camera.distortion)
+    ii = (pixels % camera.width).to(torch.float64) + 0.5
+    jj = torch.div(pixels, camera.width, rounding_mode="floor").to(torch.float64) + 0.5
+    d = camera_directions(camera.fx, camera.fy, camera.cx, camera.cy, ii, jj, camera.distortion)
     d = d @ c2w[:, :3].T
     d = d / d.norm(dim=-1, keepdim=True)
     o = c2w[:, 3].expand_as(d)
@@ -94,6 +100,34 @@ K_MIN, K_MAX = 8, 512
 # then change less evenly (largest / smallest frame step 1.64 vs 1.51): frames keep 1e-4, which an
 # animation needs more than the speed (BENCHMARKS.md, issue 13). Callers may pass their own.
 TRAIN_EARLY_STOP = RENDER_EARLY_STOP = 1e-4
+
+# Frames (no gradients) on the "fast" path (issue 18): `render_image` renders the frame in tiles of
+# TILE x TILE pixels, FRAME_CHUNK rays at a time (tiles keep neighbouring rays together, so the hash
+# rows of a block of samples stay in cache, and large chunks pay the per-round Python overhead once
+# for many rays); a ray's k-th round marches FRAME_ROUND_K[k] samples (the last value repeats), the
+# same whatever else is in its chunk, so a frame does not depend on how it is cut into chunks. A round
+# evaluates at most FRAME_ROUND_BUDGET samples (k shrinks, never below FRAME_ROUND_K[0], for chunks of
+# rays that all live long: memory stays bounded). "legacy": the renderer before issue 18 (4096-ray
+# chunks in row order, k from RENDER_SAMPLES_PER_ROUND), kept to measure against.
+RENDER_PATHS = ("fast", "legacy")
+_render_path = "fast"
+TILE = 32
+FRAME_CHUNK = 1 << 16
+FRAME_ROUND_K = (4, 4, 4, 4, 8, 8, 16, 16, 32, 32, 64, 64, 128, 128, 256, 256, 512)
+FRAME_ROUND_BUDGET = 1 << 20
+
+
+@contextlib.contextmanager
+def render_path(name: str):
+    """Render frames in the block on one path: "fast" (the default) or "legacy" (benchmarks, tests)."""
+    global _render_path
+    if name not in RENDER_PATHS:
+        raise ValueError(f"render path must be one of {RENDER_PATHS}, got {name!r}")
+    previous, _render_path = _render_path, name
+    try:
+        yield
+    finally:
+        _render_path = previous
 
 
 def _grids(model, occupancy: OccupancyGrid, step: float, background: bool) -> march_kernels.Grids:
@@ -307,6 +341,105 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
     return color, alpha, depth, n_density, ray_idx.numel()
 
 
+# The MLPs of a frame run on blocks of this many samples: a block's activations stay in cache. Measured on
+# the lego's MLPs (2 threads): the density MLP 21.8 M samples/s in blocks of 8192 against 7.8 M/s on 2^18
+# samples at once, the colour MLP 8.2 against 3.7 M/s (BENCHMARKS.md, issue 18).
+FIELD_BLOCK = 8192
+
+
+def _blocked_density(model, pts):
+    """Density and geometry features of samples (no grad), encoded and evaluated FIELD_BLOCK at a time."""
+    n = pts.shape[0]
+    if n <= FIELD_BLOCK:
+        enc, inside, _ = model.encode(pts)
+        return model.features_from_encoding(enc, inside)
+    sigma = pts.new_empty(n)
+    geo = pts.new_empty(n, model.config.geo_feat_dim + 1)
+    for s in range(0, n, FIELD_BLOCK):
+        enc, inside, _ = model.encode(pts[s: s + FIELD_BLOCK])
+        sigma[s: s + FIELD_BLOCK], geo[s: s + FIELD_BLOCK] = model.features_from_encoding(enc, inside)
+    return sigma, geo
+
+
+def _blocked_color(model, geo, dirs, codes=None):
+    n = geo.shape[0]
+    if n <= FIELD_BLOCK:
+        return model.color(geo, dirs, codes)
+    rgb = geo.new_empty(n, 3)
+    for s in range(0, n, FIELD_BLOCK):
+        rgb[s: s + FIELD_BLOCK] = model.color(geo[s: s + FIELD_BLOCK], dirs[s: s + FIELD_BLOCK],
+                                              None if codes is None else codes[s: s + FIELD_BLOCK])
+    return rgb
+
+
+def _split_transform(result):
+    """A sample_transform's answer: (positions, dirs, keep, density_scale or None)."""
+    pts, sdirs, keep, *extra = result
+    return pts, sdirs, keep, (extra[0] if extra else None)
+
+
+def _render_chunk_frame(model, o, d, occ, step, sample_transform, early_stop_eps, weight_threshold, near,
+                        appearance=None):
+    """A chunk of a frame without gradients ("fast" path): rounds of FRAME_ROUND_K samples per live ray;
+    only the samples the transform keeps reach the field and the compositing (a dropped sample has no
+    density: it changes neither weight nor transmittance); fused CPU kernels where they apply."""
+    n, dev = o.shape[0], o.device
+    color, alpha, depth = o.new_zeros(n, 3), o.new_zeros(n), o.new_zeros(n)
+    grids = _grids(model, occ, step, background=True)
+    if n == 0 or not (occ.any() or grids.has_bg):
+        return color, alpha, depth, 0, 0
+    kernels = o.device.type == "cpu" and backend.use_kernels(o.device)
+    state = march_setup(o, d, occ, grids, near, False)
+    alive = torch.nonzero(state.phase < march_kernels.PHASE_DONE).flatten()
+    transmittance = torch.ones(n, dtype=torch.float64, device=dev)
+    n_density = n_color = 0
+    rounds = 0
+    while alive.numel():
+        k = FRAME_ROUND_K[min(rounds, len(FRAME_ROUND_K) - 1)]
+        k = max(FRAME_ROUND_K[0], min(k, FRAME_ROUND_BUDGET // alive.numel()))
+        rounds += 1
+        ts, dts, counts = march_kernels.march_round(o, d, alive, state, k, grids)
+        ray_idx, t, dt, pts, sdirs = march_kernels.gather_samples(o, d, alive, ts, dts, counts)
+        del ts, dts
+        if ray_idx.numel():
+            scale = None
+            if sample_transform is not None:
+                pts, sdirs, keep, scale = _split_transform(sample_transform(pts, sdirs))
+                kept = torch.nonzero(keep).flatten()
+                if kept.numel() < keep.numel():
+                    ray_idx, t, dt, pts, sdirs = ray_idx[kept], t[kept], dt[kept], pts[kept], sdirs[kept]
+                    scale = None if scale is None else scale[kept]
+            sigma, geo = _blocked_density(model, pts)
+            n_density += ray_idx.numel()
+            if scale is not None:
+                sigma = sigma * scale
+            if kernels:
+                w, sel = composite_kernels.composite_round(sigma, dt, ray_idx, transmittance, weight_threshold)
+            else:
+                tau = sigma * dt
+                trans = _exclusive_transmittance(tau, ray_idx, n) * transmittance[ray_idx].to(tau.dtype)
+                w = trans * (1.0 - torch.exp(-tau))
+                sel = torch.nonzero(w > weight_threshold).flatten()
+                transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
+            if sel.numel():
+                r_s = ray_idx[sel]
+                rgb = _blocked_color(model, geo[sel], sdirs[sel], None if appearance is None else appearance[r_s])
+                if kernels:
+                    composite_kernels.accumulate(sel, ray_idx, w, t, rgb, color, alpha, depth)
+                else:
+                    w_s = w[sel]
+                    color.index_add_(0, r_s, w_s[:, None] * rgb)
+                    alpha.index_add_(0, r_s, w_s)
+                    depth.index_add_(0, r_s, w_s * t[sel])
+                n_color += sel.numel()
+        alive = alive[(state.phase[alive] < march_kernels.PHASE_DONE) & (transmittance[alive] > early_stop_eps)]
+    # As in _render_chunk: alpha is what the ray absorbed, the skipped weight takes the kept colour and depth.
+    absorbed = (1.0 - transmittance).to(alpha.dtype)
+    absorbed = torch.where(transmittance <= early_stop_eps, torch.ones_like(absorbed), absorbed)
+    scale = torch.where(alpha > 1e-6, absorbed / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+    return color * scale[:, None], alpha * scale, depth * scale, n_density, n_color
+
+
 def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=None, chunk: int = 4096,
                 occupancy: OccupancyGrid | None = None, sample_transform: SampleTransform | None = None,
                 step: float | None = None, perturb: bool = False, early_stop_eps: float | None = None,
@@ -337,11 +470,17 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     n_chunks_with_samples = 0
     outs, n_den, n_col = [], 0, 0
     total = origins.shape[0]
+    frame = not grad and not perturb and _render_path == "fast"
     for s in range(0, total, chunk):
-        c, a, dp, nd, nc = _render_chunk(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
-                                         sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                                         samples, None if appearance is None else appearance[s: s + chunk],
-                                         TRAIN_SAMPLES_PER_ROUND if grad else RENDER_SAMPLES_PER_ROUND)
+        if frame:
+            c, a, dp, nd, nc = _render_chunk_frame(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
+                                                   sample_transform, early_stop_eps, weight_threshold, near,
+                                                   None if appearance is None else appearance[s: s + chunk])
+        else:
+            c, a, dp, nd, nc = _render_chunk(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
+                                             sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
+                                             samples, None if appearance is None else appearance[s: s + chunk],
+                                             TRAIN_SAMPLES_PER_ROUND if grad else RENDER_SAMPLES_PER_ROUND)
         if samples is not None and len(samples) > n_chunks_with_samples:
             n_chunks_with_samples = len(samples)
             samples[-1] = (samples[-1][0] + s,) + samples[-1][1:]  # ray indices of the whole batch
@@ -369,19 +508,56 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     return out
 
 
+def tile_order(width: int, height: int, tile: int = TILE) -> torch.Tensor:
+    """Flat pixel indices (row-major j * width + i) in tile order: tiles of tile x tile pixels row by row,
+    row-major inside each tile (the edge tiles are cut to the frame)."""
+    j = torch.arange(height, dtype=torch.int64)
+    i = torch.arange(width, dtype=torch.int64)
+    tiles_x = (width + tile - 1) // tile
+    tile_of = (j[:, None] // tile) * tiles_x + i[None, :] // tile
+    inside = (j[:, None] % tile) * tile + i[None, :] % tile
+    return torch.argsort((tile_of * tile * tile + inside).reshape(-1))
+
+
 @torch.no_grad()
-def render_image(model, camera: Camera, background=None, chunk: int = 4096, **kwargs) -> dict:
+def render_image(model, camera: Camera, background=None, chunk: int | None = None, **kwargs) -> dict:
     """Render one frame. Returns numpy arrays: `rgba` (H,W,4) float straight alpha, `rgb` (H,W,3)
     composited on `background`, `depth` (H,W), and floats `density_samples_per_ray`,
     `color_samples_per_ray`. kwargs go to `render_rays` (occupancy, sample_transform, progress, ...).
+    `chunk`: rays per chunk (default FRAME_CHUNK; 4096 on the legacy path). On the fast path the rays
+    are made chunk by chunk, in tile order (the memory of a frame is its outputs and one chunk's work).
     """
-    o, d = camera_rays(camera, device=model.device)
-    out = render_rays(model, o, d, background=background, chunk=chunk, **kwargs)
     h, w = camera.height, camera.width
-    alpha = out["alpha"].clamp(0, 1)
-    straight = torch.where(alpha[:, None] > 1e-6, out["color"] / alpha.clamp_min(1e-6)[:, None], torch.zeros_like(out["color"]))
+    if _render_path == "legacy":
+        o, d = camera_rays(camera, device=model.device)
+        out = render_rays(model, o, d, background=background, chunk=chunk or 4096, **kwargs)
+        color, alpha, depth, rgb = out["color"], out["alpha"], out["depth"], out["rgb"]
+        n_den, n_col = out["n_density_samples"], out["n_color_samples"]
+    else:
+        chunk = int(chunk or FRAME_CHUNK)
+        if chunk < 1:
+            raise ValueError(f"chunk must be a positive number of rays, got {chunk}")
+        progress = kwargs.pop("progress", None)
+        order = tile_order(w, h)
+        total = h * w
+        color = torch.zeros(total, 3)
+        alpha, depth = torch.zeros(total), torch.zeros(total)
+        rgb = torch.zeros(total, 3)
+        n_den = n_col = 0
+        for s in range(0, total, chunk):
+            pixels = order[s: s + chunk]
+            o, d = pixel_rays(camera, pixels, device=model.device)
+            out = render_rays(model, o, d, background=background, chunk=pixels.numel(), **kwargs)
+            color[pixels], alpha[pixels] = out["color"].cpu(), out["alpha"].cpu()
+            depth[pixels], rgb[pixels] = out["depth"].cpu(), out["rgb"].cpu()
+            n_den += out["n_density_samples"]
+            n_col += out["n_color_samples"]
+            if progress is not None:
+                progress(min(s + chunk, total), total)
+    alpha = alpha.clamp(0, 1)
+    straight = torch.where(alpha[:, None] > 1e-6, color / alpha.clamp_min(1e-6)[:, None], torch.zeros_like(color))
     rgba = torch.cat([straight.clamp(0, 1), alpha[:, None]], dim=-1).reshape(h, w, 4)
     n = max(1, h * w)
-    return {"rgba": rgba.cpu().numpy(), "rgb": out["rgb"].clamp(0, 1).reshape(h, w, 3).cpu().numpy(),
-            "depth": out["depth"].reshape(h, w).cpu().numpy(),
-            "density_samples_per_ray": out["n_density_samples"] / n, "color_samples_per_ray": out["n_color_samples"] / n}
+    return {"rgba": rgba.cpu().numpy(), "rgb": rgb.clamp(0, 1).reshape(h, w, 3).cpu().numpy(),
+            "depth": depth.reshape(h, w).cpu().numpy(),
+            "density_samples_per_ray": n_den / n, "color_samples_per_ray": n_col / n}
