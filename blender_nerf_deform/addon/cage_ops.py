@@ -37,6 +37,18 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
     bl_label = "Build Cage"
     bl_options = {"REGISTER", "UNDO"}
 
+    refine_selected: bpy.props.BoolProperty(
+        name="Refine Selected",
+        description="Make the cage finer around the extracted mesh's selected vertices (select the part that "
+        "will stretch in Edit Mode first): a coarse cage bends a strong smooth stretch piecewise and smears it",
+        default=False,
+    )
+    refine_edge: bpy.props.FloatProperty(
+        name="Refine Edge",
+        description="Longest tet edge around the selection (0: half the cage's typical edge)",
+        default=0.0, min=0.0, subtype="DISTANCE",
+    )
+
     def request(self, context):
         forget_deleted()  # a cage or mesh deleted since the last update is gone
         nerf = owning_nerf(context.active_object)
@@ -58,6 +70,13 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
         self._part = part
         if part is not None and len(np.unique(part)) > 1:
             arrays["part"] = part
+        if self.refine_selected:
+            selected = np.zeros(len(surface.data.vertices), dtype=bool)
+            surface.data.vertices.foreach_get("select", selected)
+            if not selected.any():
+                raise ValueError(f"Refine Selected: no vertex of {surface.name} is selected; select the part that "
+                                 "will stretch in Edit Mode, or turn Refine Selected off")
+            arrays["refine"] = selected.astype(np.uint8)
         self._note = ""
         context.view_layer.update()
         extracted = extracted_regions(surface)
@@ -75,6 +94,8 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
         params = {"threshold": nerf.nerf_deform.threshold, "pin_cut": nerf.nerf_deform.pin_cut}
         if nerf.nerf_deform.checkpoint:
             params["checkpoint"] = checkpoint_path(nerf)
+        if self.refine_selected and self.refine_edge > 0:
+            params["refine_edge"] = float(self.refine_edge)
         return "cage", params, arrays
 
     def apply(self, context, result, arrays):
@@ -113,6 +134,10 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
             f"{cage.name}: {result['n_tets']} tets, {result['n_vertices']} vertices, margin {result['margin']:.3g} "
             f"(clearance {result['clearance']:.3g})",
         )
+        if result.get("refined"):
+            r = result["refined"]
+            self.report({"INFO"}, f"{cage.name}: refined around the selection to edges of {r['edge']:.3g} "
+                                  f"({r['tets_before']} -> {result['n_tets']} tets)")
         n_cut, n_pinned = result.get("n_cut", 0), result.get("n_pinned", 0)
         if n_pinned and cage_part is not None and len(np.unique(cage_part)) > 1:
             per_part = ", ".join(f"{int(np.count_nonzero(cage_part[pins] == i))} in part {i + 1}" for i in np.unique(cage_part))

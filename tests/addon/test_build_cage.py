@@ -42,6 +42,42 @@ def test_build_cage_stores_a_cage_that_embeds_the_surface(addon):
     assert len(cage.data.polygons) > 0 and len(cage.data.vertices) == len(rest)
 
 
+@pytest.mark.slow
+def test_refine_selected_makes_the_cage_finer_around_the_selection_only(addon):
+    """Refine Selected (where a part will stretch): more, smaller tets around the selected vertices,
+    the same tets elsewhere, and the surface still embedded exactly; with nothing selected, a
+    report that says what to do, and the cage already built is kept."""
+    bpy = addon
+    from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+    from blender_nerf_deform.engine.geometry.barycentric import signed_volumes
+
+    nerf, surface = _nerf(bpy)
+    co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
+    surface.data.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    surface.data.vertices.foreach_set("select", np.zeros(len(co), dtype=bool))
+    with pytest.raises(RuntimeError, match="Refine Selected: no vertex of .* is selected"):
+        bpy.ops.nerf_deform.build_cage(refine_selected=True)
+    assert nerf.nerf_deform.cage is None
+    assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
+    rest0, tets0 = load_cage(nerf.nerf_deform.cage.data)
+    top = co[:, 2] > 0.2 + 0.3  # the sphere's top cap (centre z 0.2, radius 0.6)
+    surface.data.vertices.foreach_set("select", top)
+    bpy.context.view_layer.objects.active = nerf
+    assert bpy.ops.nerf_deform.build_cage(refine_selected=True, refine_edge=0.08) == {"FINISHED"}
+    rest, tets = load_cage(nerf.nerf_deform.cage.data)
+    assert len(tets) > 2 * len(tets0) and (signed_volumes(rest, tets) > 0).all()
+    edges = np.linalg.norm(rest[tets[:, [0, 0, 0, 1, 1, 2]]] - rest[tets[:, [1, 2, 3, 2, 3, 3]]], axis=-1).max(axis=1)
+    centre = rest[tets].mean(axis=1)
+    near = centre[:, 2] > 0.6  # well inside the refined box (the cap's bottom is at z 0.5)
+    far = centre[:, 2] < -0.1  # well below it
+    assert near.any() and far.any()
+    assert np.median(edges[near]) < 0.5 * np.median(edges[far])
+    tet_ids, weights = load_embedding(surface.data)
+    rebuilt = np.einsum("nk,nkc->nc", weights, rest[tets[tet_ids]])
+    assert np.allclose(rebuilt, co, atol=1e-5)
+
+
 def test_build_cage_before_extract_mesh_says_what_to_do(addon):
     bpy = addon
     nerf, _ = _nerf(bpy, with_surface=False)

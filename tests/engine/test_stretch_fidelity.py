@@ -11,7 +11,7 @@ import pytest
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import boundary_faces, signed_volumes
-from blender_nerf_deform.engine.geometry.cage import box_cage, refine_cage
+from blender_nerf_deform.engine.geometry.cage import box_cage, extend_vertex_labels, refine_around, refine_cage
 from fixtures import REPO
 
 sys.path.insert(0, str(REPO / "tools"))
@@ -55,6 +55,28 @@ def test_refining_with_bad_input_is_an_engine_error(bad):
     kw = dict(max_edge=0.2, box=None) | bad
     with pytest.raises(EngineError, match="refinement"):
         refine_cage(V, T, kw["max_edge"], kw["box"])
+
+
+def test_refining_around_a_selection_of_a_two_part_cage_labels_every_new_vertex_with_its_part():
+    """Build Cage's Refine Selected on a cage of two objects (edit regions): the box is the selection's
+    widened by margin and edge; new vertices get their own object's part."""
+    v0, t0 = box_cage((3, 3, 3), lo=(0, 0, 0), hi=(1, 1, 1))
+    v1, t1 = box_cage((3, 3, 3), lo=(2, 0, 0), hi=(3, 1, 1))
+    V, T = np.concatenate([v0, v1]), np.concatenate([t0, t1 + len(v0)])
+    part = np.repeat([0, 1], [len(v0), len(v1)])
+    selection = np.array([[0.9, 0.5, 0.5], [2.1, 0.5, 0.5]])  # a point of each object, near the gap
+    V2, T2, edge, box = refine_around(V, T, selection, margin=0.05)
+    assert edge == pytest.approx(0.5 * np.median(np.linalg.norm(V[T[:, [0, 0, 0, 1, 1, 2]]] - V[T[:, [1, 2, 3, 2, 3, 3]]],
+                                                                   axis=-1)))
+    assert np.allclose(box, [[0.9 - 0.05 - edge, 0.5 - 0.05 - edge, 0.5 - 0.05 - edge],
+                             [2.1 + 0.05 + edge, 0.5 + 0.05 + edge, 0.5 + 0.05 + edge]])
+    assert len(T2) > len(T) and (signed_volumes(V2, T2) > 0).all()
+    labels = extend_vertex_labels(part, T2, len(V2))
+    assert (labels[: len(part)] == part).all() and (labels >= 0).all()
+    assert (labels[T2] == labels[T2][:, :1]).all()  # no tet joins two objects
+    assert ((V2[len(V):, 0] < 1.5) == (labels[len(V):] == 0)).all()
+    with pytest.raises(EngineError, match="no vertices are selected"):
+        refine_around(V, T, np.zeros((0, 3)), margin=0.05)
 
 
 def test_the_cage_command_refuses_a_refinement_box_without_an_edge_length(tmp_path):

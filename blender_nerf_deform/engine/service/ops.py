@@ -11,10 +11,11 @@ modification time; cages, embeddings and regions live in the worker session
     extract  checkpoint, threshold, ... [regions (or region), pick]
                                           the surface mesh (vertices, faces, colors, cut,
                                           part: the edit region of each vertex)
-    cage     vertices + faces [+ cut, part] [checkpoint, threshold, margin, pin_cut, ...]
-                                          the rest cage (one per part, in one), the
+    cage     vertices + faces [+ cut, part, refine] [checkpoint, threshold, margin, pin_cut,
+             refine_edge, ...]            the rest cage (one per part, in one), the
                                           surface's embedding in it, the cage vertices
-                                          pinned at the regions' cuts
+                                          pinned at the regions' cuts; with `refine` (flags of
+                                          surface vertices) made finer around those
     train    data, out [steps, max_seconds, device, downscale, resume, overwrite, scene]
                                           a NeRF trained into out/nerf.ckpt, with progress;
                                           cancelling keeps the checkpoint; answers the
@@ -48,7 +49,8 @@ import numpy as np
 
 from ..bend.posed import PosedRenderer
 from ..errors import EngineError
-from ..geometry.cage import build_cage, build_nerf_cage, build_part_cages, cut_pins, part_cut_pins
+from ..geometry.cage import (build_cage, build_nerf_cage, build_part_cages, cut_pins, extend_vertex_labels,
+                              part_cut_pins, refine_around)
 from ..geometry.deform import RegionDeformer, split_regions
 from ..geometry.embedding import Embedding, embed_points, embed_points_by_part
 from ..geometry.extract import density_fn_of, extract_nerf_mesh, extract_nerf_regions, first_dense_point
@@ -321,6 +323,21 @@ def cage(job: Job) -> tuple[dict, dict]:
         built, cage_part = build_part_cages(vertices, faces, part, build_one)
     else:
         built = build_one(vertices, faces)
+    refine = job.arrays.get("refine")  # flags: the surface vertices around which the cage is made finer
+    refined = None
+    if refine is not None:
+        if len(refine) != len(vertices):
+            raise EngineError(f"{len(refine)} refinement flags for a mesh of {len(vertices)} vertices")
+        edge = p.get("refine_edge") or None
+        if edge is not None and not (isinstance(edge, (int, float)) and not isinstance(edge, bool) and edge > 0):
+            raise EngineError(f"refine_edge must be a positive length, got {edge!r}")
+        job.progress(0.8, "refining the cage around the selection")
+        n_before = len(built.tets)
+        built.vertices, built.tets, edge, box = refine_around(built.vertices, built.tets,
+                                                              vertices[np.asarray(refine, dtype=bool)], built.margin, edge)
+        if several:
+            cage_part = extend_vertex_labels(cage_part, built.tets, len(built.vertices))
+        refined = {"edge": edge, "box": box.tolist(), "tets_before": int(n_before)}
     job.progress(0.9, "embedding the surface")
     if several:
         embedding = embed_points_by_part(vertices, part, built.vertices, built.tets, cage_part)
@@ -333,7 +350,7 @@ def cage(job: Job) -> tuple[dict, dict]:
     result = {"n_vertices": int(len(built.vertices)), "n_tets": int(len(built.tets)), "margin": built.margin,
               "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings,
               "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0, "n_pinned": int(len(pinned)),
-              "warnings": list(built.warnings)}
+              "warnings": list(built.warnings), "refined": refined}
     return result, {"vertices": built.vertices, "tets": built.tets, "tet_ids": embedding.tet_ids,
                     "weights": embedding.weights, "pinned_vertices": pinned}
 
