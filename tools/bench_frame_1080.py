@@ -140,7 +140,7 @@ def lego_scene(run: Path, data: str, view: int, width: int, height: int):
     return str(run / "nerf.ckpt"), camera, (lambda: (deformed, 0.0)), rest, tets, {"tets": int(len(tets))}
 
 
-def bench_scene(name, scene, paths, reps, save: Path | None):
+def bench_scene(name, scene, paths, reps, save: Path | None, no_step_refine: bool = False):
     import torch
 
     from blender_nerf_deform.engine.bend.posed import PosedRenderer
@@ -179,6 +179,8 @@ def bench_scene(name, scene, paths, reps, save: Path | None):
                         t1 = time.perf_counter()
                         posed.bend.set_deformed(deformed)
                         posed._pose = deformed.copy()
+                        if no_step_refine:  # CageBend's finer step for compressed poses, off (to measure it)
+                            posed.bend.step_refine = 1.0
                         t2 = time.perf_counter()
                         out = posed.render(camera, deformed)
                         t3 = time.perf_counter()
@@ -200,7 +202,8 @@ def bench_scene(name, scene, paths, reps, save: Path | None):
                            seconds_with_pose=med["bent"] + med["pose"],
                            ratio_bent_over_undeformed=med["bent"] / med["plain"],
                            ratio_with_pose=(med["bent"] + med["pose"]) / med["plain"],
-                           inverted_tets=int(out["inversion"].n_inverted) if out["inversion"] is not None else None)
+                           inverted_tets=int(out["inversion"].n_inverted) if out["inversion"] is not None else None,
+                           step_refine=float(getattr(posed.bend, "step_refine", 1.0)))
             rows.append(row)
             if save is not None:
                 from blender_nerf_deform.engine.cli.render import write_png_rgba
@@ -217,6 +220,40 @@ def bench_scene(name, scene, paths, reps, save: Path | None):
     return rows, info
 
 
+def dataset_psnr(run: Path, data: str, views: int, paths) -> dict:
+    """Every `len / views`-th view of the dataset at its own size on each path: PSNR (white background) vs
+    the dataset's image, vs the legacy path, seconds and samples per ray (means over the views)."""
+    from blender_nerf_deform.engine.nerf import renderer
+    from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
+    from blender_nerf_deform.engine.nerf.dataset import load_dataset
+
+    model = load_nerf(str(run / "nerf.ckpt"), device="cpu")
+    ds = load_dataset(data)
+    ds = ds.subset(range(0, len(ds), max(1, len(ds) // views)))
+    out = {}
+    frames = {}
+    for path in paths:
+        with renderer.render_path(path):
+            renderer.render_image(model, ds.cameras[0])
+            rows = []
+            for k, (cam, img) in enumerate(zip(ds.cameras, ds.images)):
+                t = time.perf_counter()
+                o = renderer.render_image(model, cam, background=(1.0, 1.0, 1.0))
+                s = time.perf_counter() - t
+                gt = img[..., :3] * img[..., 3:] + (1 - img[..., 3:])
+                frames[(path, k)] = o["rgba"]
+                rows.append((psnr(o["rgb"], gt), s, o["density_samples_per_ray"], o["color_samples_per_ray"],
+                             psnr(o["rgba"], frames[("legacy", k)]) if ("legacy", k) in frames and path != "legacy" else None))
+        out[path] = {"views": len(rows), "size": f"{ds.width}x{ds.height}",
+                     "psnr_vs_dataset_white": float(np.mean([r[0] for r in rows])),
+                     "seconds_median": float(np.median([r[1] for r in rows])),
+                     "density_samples_per_ray": float(np.mean([r[2] for r in rows])),
+                     "color_samples_per_ray": float(np.mean([r[3] for r in rows]))}
+        if rows[0][4] is not None:
+            out[path]["psnr_rgba_vs_legacy_min"] = float(np.min([r[4] for r in rows]))
+    return out
+
+
 def main(argv=None) -> int:
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--child-extract":
         return child_extract(sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
@@ -230,6 +267,11 @@ def main(argv=None) -> int:
     ap.add_argument("--paths", nargs="+", default=["legacy", "fast"], help="render paths to compare (legacy, fast)")
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--save", type=Path, help="folder for the frames (PNG)")
+    ap.add_argument("--no-step-refine", action="store_true",
+                    help="bent frames march at the NeRF's step even where the pose compresses it (CageBend.step_refine = 1)")
+    ap.add_argument("--psnr-views", type=int, default=0,
+                    help="also render this many lego dataset views at the dataset's size on every path: PSNR vs the "
+                         "dataset (white) and vs the legacy path")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if not (args.demo or args.lego_run):
@@ -238,14 +280,17 @@ def main(argv=None) -> int:
 
     results = {"threads": torch.get_num_threads(), "scenes": {}, "rows": []}
     if args.demo:
-        rows, info = bench_scene("demo", demo_scene(args.demo, args.width, args.height), args.paths, args.reps, args.save)
+        rows, info = bench_scene("demo", demo_scene(args.demo, args.width, args.height), args.paths, args.reps, args.save,
+                                 args.no_step_refine)
         results["rows"] += rows
         results["scenes"]["demo"] = info
     if args.lego_run:
         rows, info = bench_scene("lego", lego_scene(args.lego_run, args.lego_data, args.lego_view, args.width, args.height),
-                                 args.paths, args.reps, args.save)
+                                 args.paths, args.reps, args.save, args.no_step_refine)
         results["rows"] += rows
         results["scenes"]["lego"] = info
+        if args.psnr_views:
+            results["lego_dataset_psnr"] = dataset_psnr(args.lego_run, args.lego_data, args.psnr_views, args.paths)
     results["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(json.dumps(results, indent=1))
     for r in results["rows"]:

@@ -85,6 +85,16 @@ class OccupancyGrid:
                 self._bounds = torch.stack([self.aabb[0] + lo * self.cell_size, self.aabb[0] + hi * self.cell_size])
         return self._bounds
 
+    def coarse_blocks(self):
+        """(bool flat mask of blocks of march_kernels.COARSE^3 cells holding an occupied one, blocks per axis):
+        the march jumps over the empty blocks. Cached until the mask is replaced."""
+        cached = self.__dict__.get("_coarse")
+        if cached is None or cached[0] is not self.mask:
+            from .march_kernels import coarse_mask
+
+            cached = self.__dict__["_coarse"] = (self.mask, *coarse_mask(self.mask, self.resolution))
+        return cached[1], cached[2]
+
     def any(self) -> bool:
         """Whether any cell is occupied (cached until the mask changes through update/to)."""
         if self._any is None or self._any[0] is not self.mask:

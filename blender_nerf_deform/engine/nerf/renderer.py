@@ -134,6 +134,8 @@ def _grids(model, occupancy: OccupancyGrid, step: float, background: bool) -> ma
     box = occupancy.aabb.reshape(2, 3)
     g = march_kernels.Grids(lo=box[0].contiguous(), scale=(occupancy.resolution / (box[1] - box[0])).contiguous(),
                             res=occupancy.resolution, mask=occupancy.mask, step=float(step))
+    if _render_path == "fast" and occupancy.mask.device.type == "cpu":
+        g.coarse, g.coarse_res = occupancy.coarse_blocks()
     bg = getattr(model, "background", None) if background else None
     if bg is not None:
         g.has_bg = True
