@@ -69,10 +69,15 @@ def polar_rotations(linear: np.ndarray) -> np.ndarray:
 _CORNERS = np.array([[k & 1, (k >> 1) & 1, k >> 2] for k in range(8)])
 
 # Where a pose compresses the NeRF's content (a deformed step covers more than one rest step), frames
-# march with a finer step: render_step / (the largest rest length of a unit deformed step over the tets
-# that hold content), once that exceeds STEP_REFINE_FROM, at most MAX_STEP_REFINE times finer.
+# march with a finer step: render_step / (the compression that STEP_REFINE_SHARE of the content's rest
+# volume reaches or exceeds), once that exceeds STEP_REFINE_FROM, at most MAX_STEP_REFINE times finer.
+# The step is the whole frame's, so a share and not the maximum: a bend's crease squashes a few tets
+# strongly (the flip-free step holds some near flat: compressions of 25-125x on 1-2 % of make demo's
+# content), and refining the whole frame for them made a bent 1080p demo frame 2.5x slower
+# (BENCHMARKS.md, issue 18); a squash of the whole part (the ground truth's 0.5x) still refines.
 STEP_REFINE_FROM = 1.5
 MAX_STEP_REFINE = 4.0
+STEP_REFINE_SHARE = 0.1
 
 
 class CageBend:
@@ -160,19 +165,23 @@ class CageBend:
 
     def _step_refine(self, linear: np.ndarray, bad: np.ndarray) -> float:
         """How much finer than the NeRF's render step this pose's frames march: the largest singular
-        value of the deformed→rest linear part over the tets that hold the NeRF's occupied cells (a
-        squash to 0.5x makes each deformed step two rest steps, so a thin shell would be undersampled),
-        1 below STEP_REFINE_FROM, at most MAX_STEP_REFINE."""
+        value of the deformed→rest linear part (a squash to 0.5x makes each deformed step two rest
+        steps, so a thin shell would be undersampled) that STEP_REFINE_SHARE of the rest volume of the
+        tets holding the NeRF's occupied cells reaches; 1 below STEP_REFINE_FROM, at most MAX_STEP_REFINE."""
         content = self._content_tets
         if len(bad):
             content = np.setdiff1d(content, bad)
         if len(content) == 0:
             return 1.0
         a = linear[content]
-        largest = float(np.sqrt(np.linalg.eigvalsh(np.einsum("nji,njk->nik", a, a))[:, -1].max()))
-        if not np.isfinite(largest) or largest <= STEP_REFINE_FROM:
+        compression = np.sqrt(np.linalg.eigvalsh(np.einsum("nji,njk->nik", a, a))[:, -1])
+        volume = np.abs(self._rest_det[content])
+        order = np.argsort(-compression, kind="stable")  # most compressed first
+        share = np.cumsum(volume[order]) / max(float(volume.sum()), 1e-300)
+        level = float(compression[order][min(int(np.searchsorted(share, STEP_REFINE_SHARE)), len(order) - 1)])
+        if not np.isfinite(level) or level <= STEP_REFINE_FROM:
             return 1.0
-        return min(largest, MAX_STEP_REFINE)
+        return min(level, MAX_STEP_REFINE)
 
     def render_kwargs(self) -> dict:
         """What `render_image` / `render_rays` take to render the current pose."""
