@@ -8,9 +8,9 @@ import torch
 from blender_nerf_deform.engine import backend
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.nerf import renderer
-from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
 
+from fixtures.ball_model import ball_model
 from fixtures.sphere_data import look_at
 
 W, H = 150, 97  # not a multiple of the tile size: the last tile row and column are cut
@@ -20,28 +20,7 @@ W, H = 150, 97  # not a multiple of the tile size: the last tile row and column 
 def model():
     """A ball of radius ~0.9 (through the coarsest, dense level of the hash grid) with a soft shell,
     colours and hash noise from the finer levels, so that rays end at different depths."""
-    torch.manual_seed(3)
-    m = NerfModel(NerfConfig(log2_table_size=13, finest_resolution=64, occ_resolution=32, steps_per_diagonal=256))
-    enc = m.encoding
-    res = enc.resolutions[0]
-    g = torch.arange(res + 1, dtype=torch.float32) / res * 3.0 - 1.5
-    z, y, x = torch.meshgrid(g, g, g, indexing="ij")
-    radius = torch.sqrt(x * x + y * y + z * z).reshape(-1)
-    with torch.no_grad():
-        enc.table.uniform_(-0.3, 0.3)
-        enc.table[: (res + 1) ** 3, 0] = 20.0 * (0.9 - radius)
-        enc.table[: (res + 1) ** 3, 1] = 1.0
-        w1 = m.density_net[0].weight
-        w1.zero_()
-        w1[0, 0] = 1.0
-        w1[1, 1] = 1.0
-        w1[2:, 4:] = 0.5 * torch.randn(w1.shape[0] - 2, w1.shape[1] - 4)
-        w2 = m.density_net[2].weight
-        w2[0].zero_()
-        w2[0, 0] = 1.0
-        w2[0, 1] = -6.0
-    m.occupancy.update(m.density, m.config.render_step, m.config.occ_threshold)
-    return m.eval()
+    return ball_model(3, radius=0.9, table_noise=0.3, feature_noise=0.5)
 
 
 def _camera():

@@ -8,40 +8,18 @@ import torch
 
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf, save_nerf
 from blender_nerf_deform.engine.errors import EngineError
-from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
 from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
 
+from fixtures.ball_model import ball_model
 from fixtures.sphere_data import look_at
 
 
 def _model(seed=0):
-    """A small model with a known shape: a ball of radius ~0.6 at the origin (through the coarsest,
-    dense level of the hash grid), random colours, and hash noise on the finer levels."""
-    torch.manual_seed(seed)
-    m = NerfModel(NerfConfig(log2_table_size=13, finest_resolution=64, occ_resolution=32, steps_per_diagonal=256))
-    enc = m.encoding
-    assert enc.dense_levels[0]
-    res = enc.resolutions[0]
-    g = torch.arange(res + 1, dtype=torch.float32) / res * 3.0 - 1.5
-    z, y, x = torch.meshgrid(g, g, g, indexing="ij")  # row x + (R+1) y + (R+1)^2 z
-    radius = torch.sqrt(x * x + y * y + z * z).reshape(-1)
-    with torch.no_grad():
-        enc.table.uniform_(-0.05, 0.05)
-        enc.table[: (res + 1) ** 3, 0] = 20.0 * (0.6 - radius)
-        enc.table[: (res + 1) ** 3, 1] = 1.0
-        w1 = m.density_net[0].weight
-        w1.zero_()
-        w1[0, 0] = 1.0
-        w1[1, 1] = 1.0
-        w1[2:, 4:] = 0.1 * torch.randn(w1.shape[0] - 2, w1.shape[1] - 4)
-        w2 = m.density_net[2].weight
-        w2[0].zero_()
-        w2[0, 0] = 1.0
-        w2[0, 1] = -6.0  # density exp(relu(f) - 7): ~0 outside the ball, large inside
-    m.occupancy.update(m.density, m.config.render_step, m.config.occ_threshold)
+    """The ball of radius ~0.6 (fixtures.ball_model), its occupancy neither empty nor full."""
+    m = ball_model(seed)
     assert 0 < int(m.occupancy.mask.sum()) < m.occupancy.mask.numel() // 4
-    return m.eval()
+    return m
 
 
 def _camera(size=24):
