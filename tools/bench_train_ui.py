@@ -2,7 +2,7 @@
 """Train NeRF from Blender vs the command line, same data and budget: what the UI costs in steps.
 
     flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench_train_ui.py --data ../shared/datasets/lego_200 \
-        [--seconds 60] [--rounds 2] [--warmup-steps 3] [--work DIR]
+        [--seconds 60] [--rounds 2] [--warmup-steps 3] [--paths cli,ui,script] [--work DIR]
 
 Three paths, the same time budget (the trainer's own training time, so start-up is not
 counted) on the same data:
@@ -92,6 +92,7 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--warmup-steps", type=int, default=3)
+    p.add_argument("--paths", default="cli,ui,script", help="which paths to run, comma-separated (cli first: the ratios' base)")
     p.add_argument("--work", type=Path, default=None)
     args = p.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_train_ui_"))
@@ -109,15 +110,17 @@ def main(argv=None) -> int:
     paths = {"cli": lambda out: run_cli(data, out, args.seconds, None),
              "ui": lambda out: run_ui(bpy, data, out, args.seconds, None),
              "script": lambda out: run_script(bpy, data, out, args.seconds)}
-    runs: dict[str, list[dict]] = {name: [] for name in paths}
+    runs: dict[str, list[dict]] = {name: [] for name in args.paths.split(",") if name in paths}
     try:
         warm_cli = run_cli(data, work / "warmup_cli", None, args.warmup_steps)
         warm_ui = run_ui(bpy, data, work / "warmup_ui", None, args.warmup_steps)
         print(f"warm-up ({args.warmup_steps} steps, trainer seconds, kernels compiled if their cache was cold): "
               f"cli {warm_cli['seconds']:.1f} s, worker {warm_ui['seconds']:.1f} s", flush=True)
-        names = list(paths)
+        names = [n for n in args.paths.split(",") if n]
+        if not names or any(n not in paths for n in names):
+            raise SystemExit(f"--paths: a comma-separated choice of {', '.join(paths)}, got {args.paths!r}")
         for r in range(args.rounds):
-            for name in names[r % 3:] + names[: r % 3]:
+            for name in names[r % len(names):] + names[: r % len(names)]:
                 worker_client.shutdown()  # a fresh worker for each run, as each cli run is a fresh process
                 summary = paths[name](work / f"{name}_{r}")
                 runs[name].append(summary)
@@ -125,13 +128,14 @@ def main(argv=None) -> int:
     finally:
         blender_nerf_deform.unregister()
     print(f"data {data}, budget {args.seconds:.0f} s of training each, {args.rounds} rounds")
-    cli_mean = sum(s["steps"] for s in runs["cli"]) / len(runs["cli"])
+    base = next(iter(runs))  # the ratios' base: cli when it ran
+    base_mean = sum(s["steps"] for s in runs[base]) / len(runs[base])
     last = args.rounds - 1
     for name, summaries in runs.items():
         steps = [s["steps"] for s in summaries]
         mean = sum(steps) / len(steps)
         psnr = eval_psnr(work / f"{name}_{last}" / "nerf.ckpt", data)
-        print(f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  mean {mean:8.1f} ({mean / cli_mean:6.1%} of cli)"
+        print(f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  mean {mean:8.1f} ({mean / base_mean:6.1%} of {base})"
               f"  batch PSNR {summaries[-1].get('psnr', float('nan')):.2f} dB  eval PSNR {psnr:.2f} dB (round {last + 1})")
     return 0
 
