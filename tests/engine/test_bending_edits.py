@@ -73,8 +73,10 @@ def test_translating_a_part_empties_its_old_place_and_draws_it_at_the_new_one(mo
     for z in (0.4, 0.55, 0.65):
         assert alpha(plain, z) > 0.9 and alpha(bent, z) < 0.05, z
     assert alpha(bent, 0.0) > 0.95 and alpha(bent, 0.2) > 0.95
-    # New place: the cap now spans z = 0.8 .. 1.3 (the sphere's top, 0.8, lifted).
-    for z in (0.9, 1.05, 1.2):
+    # New place: the cap now spans z = 0.8 .. 1.3 (the sphere's top, 0.8, lifted), sampled where the old
+    # place was sampled, lifted (not at 1.2: the cap's fragile top edge, rest z 0.7, which this session's
+    # fixture NeRF gave 0.86 at rest and 0.90 lifted; the PSNR check below compares the cap as a whole).
+    for z in (0.9, 1.05, 1.15):
         assert alpha(plain, z) < 0.05 and alpha(bent, z) > 0.9, z
     assert alpha(bent, RADIUS + 0.5 + 0.15) < 0.05
     # And it is the cap itself: above z = 0.85 the frame equals the undeformed one seen from 0.5 lower.
