@@ -124,7 +124,7 @@ def test_a_squash_scales_density_by_the_rest_length_of_the_step_and_refines_the_
     along_y = torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
     for path in ("auto", "torch"):
         with backend.forced(path):
-            bend = CageBend(model, rest, tets)
+            bend = CageBend(model, rest, tets, refine_step=True)
             bend.set_deformed(rest)  # identity: every scale exactly 1, the NeRF's own step
             assert torch.equal(bend.sample_transform(pts, along_x)[3], torch.ones(2))
             assert bend.step_refine == 1.0 and "step" not in bend.render_kwargs()
@@ -144,6 +144,10 @@ def test_a_squash_scales_density_by_the_rest_length_of_the_step_and_refines_the_
             crease[corner] = opposite + 0.1 * (rest[corner] - opposite)
             bend.set_deformed(crease)
             assert bend.step_refine == 1.0 and "step" not in bend.render_kwargs()
+            bend.set_deformed(rest * [0.5, 1.0, 1.0])
+            bend.refine_step = False  # the default: the frame keeps the NeRF's step
+            assert "step" not in bend.render_kwargs()
+            bend.refine_step = True
             bend.density_correction = False  # the renderer's older contract: three outputs
             assert len(bend.sample_transform(pts, along_x)) == 3
 

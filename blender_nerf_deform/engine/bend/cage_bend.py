@@ -11,9 +11,9 @@ Every ray sample in deformed space is decided on its own (not per grid cell):
   rest-space length of a unit step, so the NeRF's opacity is integrated over
   the rest-space path (a shell squashed across the ray stays as opaque; one
   stretched across it does not thicken; switch: `density_correction`; 1 exactly
-  for an identity pose); where a pose compresses the content by more than
-  STEP_REFINE_FROM, frames march with a finer step (`render_kwargs`), so a
-  squashed shell is not stepped over. Strong smooth stretches need a cage fine
+  for an identity pose); with `refine_step` (off by default, see __init__), where
+  a pose compresses the content by more than STEP_REFINE_FROM, frames march with
+  a finer step (`render_kwargs`), so a squashed shell is not stepped over. Strong smooth stretches need a cage fine
   enough to follow them: `geometry.cage.refine_cage` (`cage --refine-edge`);
 - outside the deformed cage but inside the rest cage: empty (density 0), so
   space an edit vacates shows the background, not a ghost of the original;
@@ -88,7 +88,7 @@ class CageBend:
     """
 
     def __init__(self, model, rest_vertices, tets, *, rotate_directions: bool = True, density_correction: bool = True,
-                 max_occupancy_resolution: int = 256):
+                 refine_step: bool = False, max_occupancy_resolution: int = 256):
         self.model = model
         self.device = model.device
         self.rest_vertices = np.asarray(rest_vertices, dtype=np.float64)
@@ -96,6 +96,11 @@ class CageBend:
         self.rest = TetLocator(self.rest_vertices, self.tets, device=self.device)
         self.rotate_directions = rotate_directions
         self.density_correction = density_correction
+        # Off by default: with a finer frame step, a two-object scene (tests/addon/test_edit_region.py,
+        # one object moved down) rendered the other object, far from any squashed tet, up to 224/255
+        # off; not understood yet (the renderer's march at a step other than the NeRF's). `step_refine`
+        # is still computed and reported.
+        self.refine_step = refine_step
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None
         self._rest_inverse = tet_inverses(self.rest_vertices, self.tets)
@@ -186,7 +191,7 @@ class CageBend:
     def render_kwargs(self) -> dict:
         """What `render_image` / `render_rays` take to render the current pose."""
         kw = {"sample_transform": self.sample_transform, "occupancy": self.occupancy}
-        if self.step_refine != 1.0:
+        if self.refine_step and self.step_refine != 1.0:
             kw["step"] = self.render_step
         return kw
 
