@@ -31,11 +31,11 @@ class Conversation:
         assert hello["type"] == "hello" and "training_preview" in hello["ops"] and "prepare" in hello["ops"]
         self.log: list[tuple[dict, dict]] = []
 
-    def send(self, header: dict) -> None:
-        write_message(self.proc.stdin, header)
+    def send(self, header: dict, arrays: dict | None = None) -> None:
+        write_message(self.proc.stdin, header, arrays)
 
-    def request(self, request_id: int, op: str, params: dict) -> None:
-        self.send({"type": "request", "id": request_id, "op": op, "params": params})
+    def request(self, request_id: int, op: str, params: dict, arrays: dict | None = None) -> None:
+        self.send({"type": "request", "id": request_id, "op": op, "params": params}, arrays)
 
     def next(self) -> tuple[dict, dict]:
         message = read_message(self.proc.stdout)
@@ -143,6 +143,30 @@ def test_hostile_preview_and_prepare_params_are_input_errors(worker, tmp_path):
         header, _ = worker.until(k)
         assert header["type"] == "error" and header["kind"] == "input", (op, params, header)
         assert message in header["message"] and "Traceback" not in header["message"], (op, params, header["message"])
+
+
+def test_hostile_cage_refinement_is_an_input_error_before_any_tetrahedralizing(worker):
+    """Build Cage's Refine Selected arrives as flags and an edge length: wrong ones are named at once."""
+    from blender_nerf_deform.engine.geometry.cage import box_cage
+    from blender_nerf_deform.engine.geometry.barycentric import boundary_faces
+
+    v, t = box_cage((2, 2, 2))
+    mesh = {"vertices": v.astype(np.float64), "faces": boundary_faces(t).astype(np.int64)}
+    flags = np.ones(len(v), dtype=np.uint8)
+    cases = [
+        ({}, {"refine": flags[:-1]}, "refinement flags for a mesh of"),
+        ({"refine_edge": float("nan")}, {"refine": flags}, "refine_edge must be a positive length"),
+        ({"refine_edge": -0.1}, {"refine": flags}, "refine_edge must be a positive length"),
+        ({"refine_edge": "0.1"}, {"refine": flags}, "refine_edge must be a positive length"),
+        ({"refine_edge": True}, {"refine": flags}, "refine_edge must be a positive length"),
+    ]
+    for k, (params, extra, message) in enumerate(cases):
+        worker.request(k, "cage", params, {**mesh, **extra})
+        header, _ = worker.until(k)
+        assert header["type"] == "error" and header["kind"] == "input", (params, header)
+        assert message in header["message"] and "Traceback" not in header["message"], (params, header["message"])
+        progress = [h for h, _ in worker.log if h.get("id") == k and h["type"] == "progress"]
+        assert not progress, progress  # refused before tetrahedralizing
 
 
 def test_hostile_preview_cameras_of_a_checkpoint_are_input_errors(worker, sphere_nerf):

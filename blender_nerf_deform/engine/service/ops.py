@@ -302,12 +302,17 @@ def cage(job: Job) -> tuple[dict, dict]:
     vertices = np.asarray(job.arrays["vertices"], dtype=np.float64)
     faces = np.asarray(job.arrays["faces"], dtype=np.int64)
     p = job.params
-    job.progress(0.05, "tetrahedralizing")
     size = {"edge_length": p.get("edge_length"), "target_tets": p.get("target_tets")}
     cut, part = job.arrays.get("cut"), job.arrays.get("part")
-    for name, flags in (("cut flags", cut), ("part labels", part)):
+    refine = job.arrays.get("refine")  # flags: the surface vertices around which the cage is made finer
+    for name, flags in (("cut flags", cut), ("part labels", part), ("refinement flags", refine)):
         if flags is not None and len(flags) != len(vertices):
             raise EngineError(f"{len(flags)} {name} for a mesh of {len(vertices)} vertices")
+    refine_edge = p.get("refine_edge") or None  # None: refine_around's default
+    if refine_edge is not None and not (isinstance(refine_edge, (int, float)) and not isinstance(refine_edge, bool)
+                                        and refine_edge > 0):
+        raise EngineError(f"refine_edge must be a positive length, got {refine_edge!r}")
+    job.progress(0.05, "tetrahedralizing")
 
     _part_vertices = {} if part is None else {int(i): np.flatnonzero(part == i) for i in np.unique(part)}
 
@@ -323,18 +328,13 @@ def cage(job: Job) -> tuple[dict, dict]:
         built, cage_part = build_part_cages(vertices, faces, part, build_one)
     else:
         built = build_one(vertices, faces)
-    refine = job.arrays.get("refine")  # flags: the surface vertices around which the cage is made finer
     refined = None
     if refine is not None:
-        if len(refine) != len(vertices):
-            raise EngineError(f"{len(refine)} refinement flags for a mesh of {len(vertices)} vertices")
-        edge = p.get("refine_edge") or None
-        if edge is not None and not (isinstance(edge, (int, float)) and not isinstance(edge, bool) and edge > 0):
-            raise EngineError(f"refine_edge must be a positive length, got {edge!r}")
         job.progress(0.8, "refining the cage around the selection")
         n_before = len(built.tets)
         built.vertices, built.tets, edge, box = refine_around(built.vertices, built.tets,
-                                                              vertices[np.asarray(refine, dtype=bool)], built.margin, edge)
+                                                              vertices[np.asarray(refine, dtype=bool)], built.margin,
+                                                              refine_edge)
         if several:
             cage_part = extend_vertex_labels(cage_part, built.tets, len(built.vertices))
         refined = {"edge": edge, "box": box.tolist(), "tets_before": int(n_before)}
