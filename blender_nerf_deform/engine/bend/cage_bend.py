@@ -98,8 +98,7 @@ class CageBend:
         self.density_correction = density_correction
         # Off by default: with a finer frame step, a two-object scene (tests/addon/test_edit_region.py,
         # one object moved down) rendered the other object, far from any squashed tet, up to 224/255
-        # off; not understood yet (the renderer's march at a step other than the NeRF's). `step_refine`
-        # is still computed and reported.
+        # off; not understood yet (the renderer's march at a step other than the NeRF's).
         self.refine_step = refine_step
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None
@@ -164,7 +163,8 @@ class CageBend:
         self.located_tets = torch.as_tensor(located, dtype=torch.int64, device=self.device)
         self.deformed_bounds = np.stack([deformed.min(0), deformed.max(0)])
         self.occupancy = self._deformed_occupancy(deformed, forward)
-        self.step_refine = self._step_refine(affine[:, :3, :3], bad)
+        # Measured only when it is used: it is an eigen-decomposition per content tet on every pose.
+        self.step_refine = self._step_refine(affine[:, :3, :3], bad) if self.refine_step else 1.0
         self.render_step = self.model.config.render_step / self.step_refine
         return self
 
