@@ -12,23 +12,8 @@ import numpy as np
 
 from ..engine.service.protocol import content_key
 from .cage_store import cage_pins, deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
-from .handles import group_vertices, handle_target
+from .handles import handle_target, region_vertices
 from .properties import PIN_GROUP, handles_of
-
-# Surface vertex indices of each region, by (mesh pointer, group name); vertex groups are edited
-# in Edit Mode only, so the cache is dropped whenever a surface is there.
-_region_cache: dict[tuple[int, str], np.ndarray] = {}
-
-
-def region_vertices(surface: bpy.types.Object, group: str) -> np.ndarray:
-    if surface.mode == "EDIT":
-        _region_cache.clear()
-        return group_vertices(surface, group)
-    key = (surface.data.as_pointer(), group)
-    if key not in _region_cache:
-        _region_cache[key] = group_vertices(surface, group)
-    return _region_cache[key]
-
 
 def handle_pose(nerf, depsgraph) -> tuple[dict, dict] | None:
     """`nerf`'s handles at this frame as (pose params, shared content), or None without a handle.

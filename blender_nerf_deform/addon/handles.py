@@ -12,6 +12,7 @@ from __future__ import annotations
 import bpy  # first: bmesh is importable only once bpy is loaded (the bpy module from PyPI)
 import bmesh  # noqa: I001
 import numpy as np
+from bpy.app.handlers import persistent
 from mathutils import Matrix
 
 from .properties import OnNeRF, PIN_GROUP, alive, handles_of, owning_nerf, select_only, to_nerf_frame
@@ -36,6 +37,47 @@ def group_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
     return np.array(
         [v.index for v in surface.data.vertices if any(g.group == gi and g.weight > 0 for g in v.groups)], dtype=np.int64
     )
+
+
+# The vertices of each region, cached for renders and previews (reading a vertex group is a
+# Python loop over the mesh). Keyed by the mesh's session_uid, never its pointer: a mesh made after
+# another was freed (File > New, a re-extracted surface) can reuse its memory and would get the old
+# mesh's regions. Vertex groups change in Edit Mode and Weight Paint, through this module's
+# operators, by undo and by loading a file: each of those drops the cache.
+_region_cache: dict[tuple[int, str, int], np.ndarray] = {}
+
+
+def forget_regions() -> None:
+    _region_cache.clear()
+
+
+def region_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
+    """group_vertices, cached while the surface is in Object Mode."""
+    if surface.mode != "OBJECT":
+        _region_cache.clear()
+        return group_vertices(surface, group_name)
+    key = (surface.data.session_uid, group_name, len(surface.data.vertices))
+    if key not in _region_cache:
+        _region_cache[key] = group_vertices(surface, group_name)
+    return _region_cache[key]
+
+
+@persistent
+def _forget_regions_in_group_editing_modes(_scene, _depsgraph):
+    # Every operator in Edit Mode or Weight Paint ends in a depsgraph update, and so does leaving them.
+    if bpy.context.mode in ("EDIT_MESH", "PAINT_WEIGHT"):
+        _region_cache.clear()
+
+
+@persistent
+def _forget_regions(*_args):
+    _region_cache.clear()
+
+
+def _handlers():
+    h = bpy.app.handlers
+    return ((h.depsgraph_update_post, _forget_regions_in_group_editing_modes), (h.load_post, _forget_regions),
+            (h.undo_post, _forget_regions), (h.redo_post, _forget_regions))
 
 
 def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=None) -> np.ndarray:
@@ -77,6 +119,7 @@ def _add_to_group(surface: bpy.types.Object, group_name: str, vertices: np.ndarr
         bpy.ops.object.mode_set(mode="OBJECT")
     group = surface.vertex_groups.get(group_name) or surface.vertex_groups.new(name=group_name)
     group.add(vertices.tolist(), 1.0, "REPLACE")
+    forget_regions()
     if was_edit:
         bpy.ops.object.mode_set(mode="EDIT")
     return group
@@ -204,6 +247,7 @@ class NERFDEFORM_OT_remove_handle(bpy.types.Operator):
         surface = alive(nerf.nerf_deform.surface) if nerf is not None else None
         if surface is not None and (group := surface.vertex_groups.get(handle.nerf_deform.region)) is not None:
             surface.vertex_groups.remove(group)
+            forget_regions()
         name = handle.name
         bpy.data.objects.remove(handle)
         self.report({"INFO"}, f"Removed {name}")
@@ -233,4 +277,18 @@ class NERFDEFORM_OT_reset_pose(OnNeRF, bpy.types.Operator):
 
 
 _classes = (NERFDEFORM_OT_add_handle, NERFDEFORM_OT_pin_selection, NERFDEFORM_OT_remove_handle, NERFDEFORM_OT_reset_pose)
-register, unregister = bpy.utils.register_classes_factory(_classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
+
+
+def register():
+    _register_classes()
+    for handlers, fn in _handlers():
+        handlers.append(fn)
+
+
+def unregister():
+    for handlers, fn in _handlers():
+        if fn in handlers:
+            handlers.remove(fn)
+    forget_regions()
+    _unregister_classes()

@@ -23,17 +23,22 @@ def _nerf_with_surface(bpy, location=(1.0, 2.0, 0.5), scale=2.0):
 
 
 def _select_in_edit_mode(bpy, surface, indices):
+    import bmesh
+
     bpy.context.view_layer.objects.active = surface
-    if surface.mode == "EDIT":
-        bpy.ops.object.mode_set(mode="OBJECT")
-    mesh = surface.data
-    flags = np.zeros(len(mesh.vertices), dtype=bool)
+    if surface.mode != "EDIT":
+        bpy.ops.object.mode_set(mode="EDIT")
+    # Through bmesh, not Mesh.edges.foreach_set("select"), which crashes Blender 5.0.1 on a mesh
+    # built in bulk (no selection attributes yet).
+    bm = bmesh.from_edit_mesh(surface.data)
+    bm.select_mode = {"VERT"}
+    for element in (*bm.edges, *bm.faces):
+        element.select = False
+    flags = np.zeros(len(bm.verts), dtype=bool)
     flags[indices] = True
-    mesh.vertices.foreach_set("select", flags)
-    # Edit Mode flushes face and edge selection to vertices: select none of them.
-    mesh.edges.foreach_set("select", np.zeros(len(mesh.edges), dtype=bool))
-    mesh.polygons.foreach_set("select", np.zeros(len(mesh.polygons), dtype=bool))
-    bpy.ops.object.mode_set(mode="EDIT")
+    for vert, flag in zip(bm.verts, flags.tolist()):
+        vert.select = flag
+    bmesh.update_edit_mesh(surface.data)
 
 
 def test_add_handle_makes_an_empty_at_the_centroid_owning_the_region(addon):
@@ -148,3 +153,44 @@ def test_pin_remove_and_reset(addon):
     assert bpy.ops.nerf_deform.remove_handle() == {"FINISHED"}
     assert handles_of(nerf) == [] and surface.vertex_groups.get(region) is None
     assert surface.vertex_groups.get(PIN_GROUP) is not None
+
+
+def test_a_regions_vertices_are_the_meshs_own_after_reused_memory_and_edit_mode_changes(addon):
+    """The cached region of a surface: a mesh made after another was freed can reuse its memory
+    (seen in CI: a handle's region from an earlier test's mesh); the cache must follow the mesh
+    itself, and an edit of the group in Edit Mode."""
+    bpy = addon
+    from blender_nerf_deform.addon.handles import region_vertices
+
+    for round in range(30):
+        n = 10 + round
+        mesh = bpy.data.meshes.new("Surface")
+        mesh.from_pydata([(i, 0.0, 0.0) for i in range(n)], [], [])
+        obj = bpy.data.objects.new("Surface", mesh)
+        bpy.context.scene.collection.objects.link(obj)
+        group = obj.vertex_groups.new(name="Handle")
+        chosen = list(range(round % 5, n, 3))
+        group.add(chosen, 1.0, "REPLACE")
+        assert np.array_equal(region_vertices(obj, "Handle"), chosen), round
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(mesh)
+
+    mesh = bpy.data.meshes.new("Surface")
+    mesh.from_pydata([(i, 0.0, 0.0) for i in range(12)], [], [])
+    obj = bpy.data.objects.new("Surface", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.vertex_groups.new(name="Handle").add([0, 1, 2], 1.0, "REPLACE")
+    assert np.array_equal(region_vertices(obj, "Handle"), [0, 1, 2])
+    # Ctrl+G in Edit Mode, as an artist would: assign the selected vertices 5 and 6 to the group.
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="DESELECT")
+    bpy.ops.object.mode_set(mode="OBJECT")
+    flags = np.zeros(12, dtype=bool)
+    flags[[5, 6]] = True
+    mesh.vertices.foreach_set("select", flags)
+    bpy.ops.object.mode_set(mode="EDIT")
+    obj.vertex_groups.active_index = obj.vertex_groups["Handle"].index
+    bpy.ops.object.vertex_group_assign()
+    bpy.ops.object.mode_set(mode="OBJECT")
+    assert np.array_equal(region_vertices(obj, "Handle"), [0, 1, 2, 5, 6])
