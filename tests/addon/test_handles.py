@@ -23,22 +23,11 @@ def _nerf_with_surface(bpy, location=(1.0, 2.0, 0.5), scale=2.0):
 
 
 def _select_in_edit_mode(bpy, surface, indices):
-    import bmesh
+    from tools.demo import _select_vertices  # through bmesh, as the demo selects
 
-    bpy.context.view_layer.objects.active = surface
-    if surface.mode != "EDIT":
-        bpy.ops.object.mode_set(mode="EDIT")
-    # Through bmesh, not Mesh.edges.foreach_set("select"), which crashes Blender 5.0.1 on a mesh
-    # built in bulk (no selection attributes yet).
-    bm = bmesh.from_edit_mesh(surface.data)
-    bm.select_mode = {"VERT"}
-    for element in (*bm.edges, *bm.faces):
-        element.select = False
-    flags = np.zeros(len(bm.verts), dtype=bool)
-    flags[indices] = True
-    for vert, flag in zip(bm.verts, flags.tolist()):
-        vert.select = flag
-    bmesh.update_edit_mesh(surface.data)
+    mask = np.zeros(len(surface.data.vertices), dtype=bool)
+    mask[indices] = True
+    _select_vertices(bpy, surface, mask)
 
 
 def test_add_handle_makes_an_empty_at_the_centroid_owning_the_region(addon):
