@@ -96,9 +96,10 @@ class CageBend:
         self.rest = TetLocator(self.rest_vertices, self.tets, device=self.device)
         self.rotate_directions = rotate_directions
         self.density_correction = density_correction
-        # Off by default: with a finer frame step, a two-object scene (tests/addon/test_edit_region.py,
-        # one object moved down) rendered the other object, far from any squashed tet, up to 224/255
-        # off; not understood yet (the renderer's march at a step other than the NeRF's).
+        # Off by default: a finer step is applied to the whole frame, and it changes the undeformed
+        # parts too (a different quadrature: up to 9-44/255 premultiplied at a few edge pixels, mean
+        # 0.1/255; BENCHMARKS "Why the finer frame step is off"), so an edit would change what it
+        # did not touch. A per-cell step would not; the squash target is met without it.
         self.refine_step = refine_step
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None
