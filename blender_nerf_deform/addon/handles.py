@@ -15,7 +15,8 @@ import numpy as np
 from bpy.app.handlers import persistent
 from mathutils import Matrix
 
-from .properties import OnNeRF, PIN_GROUP, alive, handles_of, owning_nerf, select_only, to_nerf_frame
+from .properties import (OnNeRF, PIN_GROUP, add_app_handlers, alive, handles_of, owning_nerf, remove_app_handlers,
+                         select_only, to_nerf_frame)
 
 
 def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
@@ -282,13 +283,10 @@ _register_classes, _unregister_classes = bpy.utils.register_classes_factory(_cla
 
 def register():
     _register_classes()
-    for handlers, fn in _handlers():
-        handlers.append(fn)
+    add_app_handlers(_handlers())
 
 
 def unregister():
-    for handlers, fn in _handlers():
-        if fn in handlers:
-            handlers.remove(fn)
+    remove_app_handlers(_handlers())
     forget_regions()
     _unregister_classes()

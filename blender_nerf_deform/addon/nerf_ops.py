@@ -9,7 +9,7 @@ from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from .jobs import WorkerOperator
-from .properties import select_only
+from .properties import add_app_handlers, remove_app_handlers, select_only
 
 NERFDEFORM_ENGINE = "NERF_DEFORM"
 
@@ -182,12 +182,9 @@ def _handlers():
 
 def register():
     _register_classes()
-    for handlers, fn in _handlers():
-        handlers.append(fn)
+    add_app_handlers(_handlers())
 
 
 def unregister():
-    for handlers, fn in _handlers():
-        if fn in handlers:
-            handlers.remove(fn)
+    remove_app_handlers(_handlers())
     _unregister_classes()

@@ -31,7 +31,7 @@ from ..engine.geometry.embedding import Embedding
 from . import jobs
 from .cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
 from .deformation import AsyncSolver, handle_pose
-from .properties import settings
+from .properties import add_app_handlers, remove_app_handlers, settings
 from .worker_client import WorkerError
 
 PREVIEW_KEY = "NeRF Deform"
@@ -174,15 +174,12 @@ def _handlers():
 
 
 def register():
-    for handlers, fn in _handlers():
-        handlers.append(fn)
+    add_app_handlers(_handlers())
 
 
 def unregister():
     global _rendering
-    for handlers, fn in _handlers():
-        if fn in handlers:
-            handlers.remove(fn)
+    remove_app_handlers(_handlers())
     _rendering = False
     _last_pose.clear()
     _solvers.clear()

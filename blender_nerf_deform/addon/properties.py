@@ -223,16 +223,27 @@ def _handlers():
             (h.undo_post, _forget_deleted), (h.redo_post, _forget_deleted), (h.save_pre, _forget_deleted))
 
 
+def add_app_handlers(pairs) -> None:
+    """Append each (bpy.app.handlers list, function) of `pairs`, once (a module's register)."""
+    for handlers, fn in pairs:
+        if fn not in handlers:
+            handlers.append(fn)
+
+
+def remove_app_handlers(pairs) -> None:
+    """Remove what `add_app_handlers` appended (a module's unregister; absent ones are fine)."""
+    for handlers, fn in pairs:
+        if fn in handlers:
+            handlers.remove(fn)
+
+
 def register():
     bpy.utils.register_class(NERFDEFORM_ObjectSettings)
     bpy.types.Object.nerf_deform = PointerProperty(type=NERFDEFORM_ObjectSettings)
-    for handlers, fn in _handlers():
-        handlers.append(fn)
+    add_app_handlers(_handlers())
 
 
 def unregister():
-    for handlers, fn in _handlers():
-        if fn in handlers:
-            handlers.remove(fn)
+    remove_app_handlers(_handlers())
     del bpy.types.Object.nerf_deform
     bpy.utils.unregister_class(NERFDEFORM_ObjectSettings)

@@ -41,9 +41,20 @@ def _panels_show_engine(bpy):
     return [name for name in STANDARD_PANELS if "NERF_DEFORM" in getattr(bpy.types, name).COMPAT_ENGINES]
 
 
+def _our_app_handlers(bpy):
+    """(handler list name, function name) of the add-on's functions in bpy.app.handlers."""
+    found = []
+    for name in dir(bpy.app.handlers):
+        handlers = getattr(bpy.app.handlers, name)
+        if isinstance(handlers, list):
+            found += [(name, fn.__name__) for fn in handlers if "blender_nerf_deform" in getattr(fn, "__module__", "")]
+    return found
+
+
 def _nothing_registered(bpy):
     return (
         not any(hasattr(bpy.types, name) for name in REGISTERED_TYPES)
+        and not _our_app_handlers(bpy)
         and not _panels_show_engine(bpy)
         and not _engine_ids(bpy)
         and not any(key.endswith("blender_nerf_deform") for key in bpy.context.preferences.addons.keys())
@@ -155,6 +166,9 @@ def test_direct_import_registers_and_unregisters(blender):
         for name in REGISTERED_TYPES:
             assert hasattr(bpy.types, name), name
         assert _engine_ids(bpy)
+        handlers = _our_app_handlers(bpy)
+        assert ("load_post", "_forget_deleted") in handlers and ("frame_change_post", "_on_frame_change") in handlers
+        assert len(handlers) == len(set(handlers)), handlers  # each once
     finally:
         blender_nerf_deform.unregister()
     assert _nothing_registered(bpy)
