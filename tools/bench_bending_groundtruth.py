@@ -312,7 +312,7 @@ def render_ground_truth(work: Path, args, maps=None, rest_pose: bool = True) -> 
                   seed=args.seed, test_count=args.test_views, threads=0, denoise=False)
     t0 = time.perf_counter()
     if rest_pose:
-        train_res = _train_resolution(args)
+        train_res = args.train_resolution
         make_dataset(work / "data", blend=None, progress=None, count=args.views,
                      **{**common, "resolution": (train_res, train_res)})
         print(f"ground truth: rest pose, {args.views} training + {args.test_views} test views, {train_res} px "
@@ -338,13 +338,9 @@ def render_ground_truth(work: Path, args, maps=None, rest_pose: bool = True) -> 
     return {"surface_vertices": len(surface)}
 
 
-def _train_resolution(args) -> int:
-    return args.train_resolution or args.resolution
-
-
 def rest_test_json(work: Path, args) -> Path:
     """The rest pose's test views at the scoring resolution."""
-    if _train_resolution(args) != args.resolution:
+    if args.train_resolution != args.resolution:
         return work / "gt_rest" / "test" / "transforms.json"
     return work / "data" / "test" / "transforms.json"
 
@@ -464,6 +460,10 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse", action="store_true",
                     help="keep ground truth, checkpoint, mesh and cage already in --work; redo renders and scores")
     args = ap.parse_args(argv)
+    for flag, value in (("--resolution", args.resolution), ("--train-resolution", args.train_resolution)):
+        if value is not None and value < 1:
+            ap.error(f"{flag} must be a whole number of pixels >= 1, got {value}")
+    args.train_resolution = args.train_resolution or args.resolution  # resolved once: everything reads it
     maps = _select_maps(ap, args.maps)
     work = args.work.resolve()
     if str(work).startswith(str(REPO) + "/"):
@@ -478,9 +478,9 @@ def main(argv=None) -> int:
     if have_rest and args.reuse:  # a --work made at other resolutions is not this benchmark
         train_w = json.loads((work / "data" / "transforms.json").read_text()).get("w")
         test_w = json.loads(test_json.read_text()).get("w")
-        if (train_w, test_w) != (_train_resolution(args), args.resolution):
+        if (train_w, test_w) != (args.train_resolution, args.resolution):
             raise SystemExit(f"--reuse: {work} holds {train_w} px training / {test_w} px test views, not "
-                             f"{_train_resolution(args)} / {args.resolution}: use another --work")
+                             f"{args.train_resolution} / {args.resolution}: use another --work")
     missing = [m for m in maps if not (work / f"gt_{m}" / "test" / "transforms.json").is_file()]
     if args.reuse and have_rest and not missing:
         reused.append("ground truth")
@@ -556,11 +556,12 @@ def main(argv=None) -> int:
     t = engine(work / "render_rest.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out", renders / "rest",
                "--device", args.device)
     rest_score = score(renders / "rest", test_json)
-    rows.append({"pose": "rest (no cage)", "gt": str(test_json.parent.relative_to(work)), **rest_score, "render_s": t})
+    rest_gt = str(test_json.parent.relative_to(work))
+    rows.append({"pose": "rest (no cage)", "gt": rest_gt, **rest_score, "render_s": t})
     np.save(work / "V_identity.npy", rest_v)
     t = engine(work / "render_identity.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out",
                renders / "identity", "--cage", cage_path, "--deformed", work / "V_identity.npy", "--device", args.device)
-    rows.append({"pose": "identity (cage, V = rest)", "gt": str(test_json.parent.relative_to(work)), **score(renders / "identity", test_json),
+    rows.append({"pose": "identity (cage, V = rest)", "gt": rest_gt, **score(renders / "identity", test_json),
                  "render_s": t})
     for name, fn in maps.items():
         V = fn(rest_v)
@@ -595,7 +596,7 @@ def main(argv=None) -> int:
               f"{baseline} | {geometry} | {r.get('inverted_tets', '-')} | {r['render_s']:.1f} |")
     total = time.perf_counter() - started
     print(f"\n{args.test_views} test views, {args.resolution}x{args.resolution} (trained on "
-          f"{_train_resolution(args)} px views); PSNR averaged over views; "
+          f"{args.train_resolution} px views); PSNR averaged over views; "
           f"{px_per_unit:.1f} px per world unit at the cameras' distance; total {total:.0f} s"
           + (f" (reused: {', '.join(reused)})" if reused else ""))
     results = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},

@@ -190,3 +190,17 @@ def test_stretching_a_band_2_7x_renders_within_the_bound_of_the_rest_pose(tmp_pa
 STRETCH_BOUND_DB = 1.1
 STRETCH_GAIN_DB = 0.4
 SQUASH_BOUND_DB = 0.5
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "nan", "1.5"])
+def test_a_bad_train_resolution_is_one_error_line(value, tmp_path):
+    """The benchmark's --train-resolution (its own process each): refused before anything is rendered."""
+    import subprocess
+
+    proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench_bending_groundtruth.py"), "--work",
+                           str(tmp_path / "work"), "--train-resolution", value], cwd=REPO, capture_output=True,
+                          text=True, timeout=120)
+    errors = [line for line in proc.stderr.splitlines() if "error:" in line]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(errors) == 1 and "--train-resolution" in errors[0], proc.stderr
+    assert not (tmp_path / "work").exists()  # nothing made
