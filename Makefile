@@ -23,7 +23,7 @@ $(STAMP): requirements.txt blender_nerf_deform/engine/requirements.txt
 	@touch $(STAMP)
 
 test: setup
-	$(VPY) -m pytest tests $(PYTEST_ARGS)
+	$(VPY) -m pytest addon_tests $(PYTEST_ARGS)
 
 demo: setup
 	$(VPY) tools/demo.py

@@ -116,7 +116,7 @@ def test_engine_tests_never_import_blender():
     from tools.check_layering import BLENDER_MODULES
 
     found = []
-    for path in sorted((REPO / "tests" / "engine").glob("*.py")):
+    for path in sorted((REPO / "addon_tests" / "engine").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
