@@ -71,8 +71,12 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
         min=0.0,
         description="Connected pieces smaller than this are dropped as floaters (0: automatic)",
     )
+    # No `poll=` here (nor on any property of the add-on): a PointerProperty with a Python poll
+    # callback makes the bpy module of Blender 4.2 LTS segfault when its process exits (even after
+    # unregister) and that of 4.5 LTS hang there while it is registered (test_extension). Only the
+    # add-on sets this pointer (Add Edit Region: a cube Empty); no panel offers it as a picker.
     edit_region: PointerProperty(
-        name="Edit Region", type=bpy.types.Object, poll=lambda _self, obj: obj.type == "EMPTY",
+        name="Edit Region", type=bpy.types.Object,
         description="The edit region added last (a NeRF's regions are all the REGION Empties of it; none: the whole box)",
     )
     pick_object: BoolProperty(
