@@ -24,13 +24,28 @@ def blender():
     bpy.ops.wm.read_factory_settings(use_empty=True)
 
 
+@pytest.fixture(scope="module")
+def module_worker():
+    """The worker the module's `addon` tests share: starting one costs a torch import and a kernel
+    load (3-4 s), which dozens of tests paid each. A test that stops or kills it gets a new one on its
+    next request, as a user would; the module's last test leaves it stopped."""
+    held = {"client": None}
+    yield held
+    if held["client"] is not None:
+        held["client"].stop()
+
+
 @pytest.fixture
-def addon(blender):
-    """The add-on registered by direct import, in factory settings; unregistered after."""
+def addon(blender, module_worker):
+    """The add-on registered by direct import, in factory settings; unregistered after (the worker is
+    kept for the module's next test: module_worker)."""
     import blender_nerf_deform
+    from blender_nerf_deform.addon import worker_client
 
     blender_nerf_deform.register()
+    worker_client.adopt_client(module_worker["client"])
     yield blender
+    module_worker["client"] = worker_client.detach_client()
     blender_nerf_deform.unregister()
 
 

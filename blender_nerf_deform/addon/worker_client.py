@@ -460,6 +460,26 @@ def active_client() -> WorkerClient | None:
     return _client
 
 
+def detach_client() -> WorkerClient | None:
+    """Take the shared worker out of the add-on without stopping it (`shutdown` then leaves it
+    running); `adopt_client` hands it back. The test suite keeps one worker per test module across
+    its register/unregister cycles this way, instead of a torch import and a kernel load per test."""
+    global _client
+    client, _client = _client, None
+    return client
+
+
+def adopt_client(client: WorkerClient | None) -> None:
+    """Make `client` (from `detach_client`) the shared worker again; a stopped one restarts on demand."""
+    global _client
+    if client is None or client is _client:
+        return
+    if _client is not None:
+        _client.stop()
+    _client = client
+    _ensure_timer()
+
+
 def _drain_timer() -> float | None:
     if _client is None:
         return None
