@@ -12,6 +12,15 @@ A worker that crashes or lacks torch fails the pending requests with a clear
 message; the next request starts a fresh one. Blender's scene is never touched
 from here: callbacks decide what to do with results.
 
+At exit (`shutdown`, run by the add-on's unregister and by an `atexit` hook)
+the worker is stopped, its reader threads end, and every request's callbacks
+are let go. The reader threads are daemons that hold the client: left running
+at exit, they would keep the queued callbacks (the preview's, whose module
+globals hold `bpy`) alive forever, and the bpy module of Blender 4.2 and 4.5
+runs Blender's own exit only when the `bpy` module is freed: a process with a
+preview solve still queued segfaulted at exit in 4.2 (exit 139) and hung there
+in 4.5. Blender 5.x exits either way.
+
 The worker session (DESIGN.md): a request may name shared content, `shared =
 {slot: (content key, loader)}`. The client remembers what it gave the running
 worker and calls a slot's loader (and sends its arrays) only for a key that
@@ -132,6 +141,7 @@ class WorkerClient:
         self._ids = itertools.count(1)
         self._lock = threading.RLock()
         self._main_inbox: queue.Queue = queue.Queue()
+        self._readers: list[threading.Thread] = []  # the current worker's stdout and stderr threads
         self._stderr_tail: collections.deque[str] = collections.deque(maxlen=_STDERR_LINES)
         self._given: set[tuple[str, str]] = set()  # (slot, key) the running worker holds
         self.bytes_sent = 0
@@ -182,7 +192,9 @@ class WorkerClient:
         stderr_pump = threading.Thread(target=self._pump_stderr, args=(proc,), name="nerf-worker-stderr", daemon=True)
         stderr_pump.start()
         first: queue.Queue = queue.Queue()
-        threading.Thread(target=self._pump_stdout, args=(proc, first), name="nerf-worker-stdout", daemon=True).start()
+        stdout_pump = threading.Thread(target=self._pump_stdout, args=(proc, first), name="nerf-worker-stdout", daemon=True)
+        stdout_pump.start()
+        self._readers = [stderr_pump, stdout_pump]
         timeout = START_TIMEOUT_S
         try:
             timeout = float(os.environ.get("NERF_DEFORM_WORKER_START_TIMEOUT") or timeout)
@@ -238,6 +250,23 @@ class WorkerClient:
             except (OSError, subprocess.TimeoutExpired, ValueError):
                 proc.kill()
                 proc.wait()
+            readers, self._readers = self._readers, []
+        # The worker is gone, so its pipes end and so do the threads reading them (outside the
+        # lock: the stdout reader takes it on its way out).
+        for thread in readers:
+            if thread is not threading.current_thread():
+                thread.join(timeout=5)
+
+    def forget_pending(self) -> None:
+        """Drop every request and every queued answer without calling back (Blender is quitting
+        or the add-on is disabled: nothing will drain them, and they hold the callers' objects)."""
+        with self._lock:
+            self._requests.clear()
+        while True:
+            try:
+                self._main_inbox.get_nowait()
+            except queue.Empty:
+                return
 
     def _exit_report(self, proc: subprocess.Popen | None = None) -> str:
         """How the worker `proc` (default: the current one) ended, with its last output."""
@@ -496,12 +525,14 @@ def _ensure_timer() -> None:
 
 
 def shutdown() -> None:
-    """Stop the worker (add-on disabled, Blender quitting)."""
+    """Stop the worker and let go of every callback (add-on disabled, Blender quitting: the
+    module docstring says why nothing may outlive this)."""
     global _client
     import bpy
 
     if bpy.app.timers.is_registered(_drain_timer):
         bpy.app.timers.unregister(_drain_timer)
-    if _client is not None:
-        _client.stop()
-        _client = None
+    client, _client = _client, None
+    if client is not None:
+        client.stop()
+        client.forget_pending()
