@@ -8,6 +8,8 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 # Extra arguments for pytest, e.g. `make test PYTEST_ARGS="-k engine -x"`.
 PYTEST_ARGS ?=
+# pytest-xdist workers (0: one process); a module's tests stay together in one worker.
+TEST_WORKERS ?= 2
 
 .PHONY: setup test demo extension clean
 
@@ -23,7 +25,7 @@ $(STAMP): requirements.txt blender_nerf_deform/engine/requirements.txt
 	@touch $(STAMP)
 
 test: setup
-	$(VPY) -m pytest addon_tests $(PYTEST_ARGS)
+	$(VPY) -m pytest addon_tests -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 demo: setup
 	$(VPY) tools/demo.py

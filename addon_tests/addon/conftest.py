@@ -52,6 +52,8 @@ def addon(blender, module_worker):
 @pytest.fixture(scope="session")
 def extension_zip(tmp_path_factory) -> Path:
     """The extension zip built by tools/build_extension.py (validated by Blender's tool)."""
+    from fixtures.shared_build import built_once
     from tools.build_extension import build
 
-    return build(tmp_path_factory.mktemp("dist"))
+    (zip_path,) = built_once(tmp_path_factory, "dist", build).glob("*.zip")
+    return zip_path

@@ -28,6 +28,7 @@ assert hasattr(bpy.types.Object, "nerf_deform"), "NeRF Deform is not enabled"
 
 def _blender(script: str, user_resources, cwd) -> str:
     env = {**os.environ, "BLENDER_USER_RESOURCES": str(user_resources)}
+    env.pop("NUMBA_CACHE_DIR", None)  # a farm node's environment: the worker picks its own kernel cache
     proc = subprocess.run([sys.executable, "-c", _PRELUDE + textwrap.dedent(script)], env=env, cwd=cwd,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]

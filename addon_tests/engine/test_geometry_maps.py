@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -230,11 +233,26 @@ def test_locator_rejects_a_degenerate_cage(backend):
         TetLocator(V, T, backend=backend)
 
 
-def test_numba_grid_lists_candidates_best_first_whatever_the_thread_count():
+def test_numba_grid_lists_candidates_best_first_whatever_the_thread_count(tmp_path):
     """Each cell lists its tets best first (the tet nearest to covering the cell's centre), and the
     build is deterministic: the same lists with one thread as with all of them."""
     numba = pytest.importorskip("numba")
     from blender_nerf_deform.engine.geometry.locate_kernels import NumbaGrid
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        # This process has a one-thread pool (make test's xdist workers run one thread each): the
+        # comparison runs in a child process with two.
+        import subprocess
+        import sys
+
+        env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
+        env.pop("PYTEST_XDIST_WORKER_COUNT", None)
+        this_test = f"{__file__}::test_numba_grid_lists_candidates_best_first_whatever_the_thread_count"
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--basetemp",
+                               str(tmp_path / "child"), this_test], env=env, cwd=Path(__file__).parent.parent,
+                              capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0 and "1 passed" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-2000:]
+        return
 
     V, T = _jittered_box(6, seed=3)
     n_threads = numba.get_num_threads()
