@@ -48,7 +48,7 @@ CRASH_SIGNS = ("corrupted", "free():", "double free", "munmap_chunk", "malloc():
                "Segmentation fault", "Traceback (most recent call last)", "Freeing memory after the leak detector")
 RENDER_SIZE = 32
 EXTRACT_RESOLUTION = 32
-THRESHOLD = float(os.environ.get("SMOKE_THRESHOLD", "10"))
+THRESHOLD = 10.0  # the add-on's default density threshold
 
 
 # --------------------------------------------------------------------------- the tiny NeRF
@@ -313,9 +313,12 @@ def draw_everything(bpy, where: str) -> int:
     return drawn
 
 
+_STARTED = time.monotonic()
+
+
 def _check(result, what):
     assert result == {"FINISHED"}, f"{what} returned {result}"
-    print(f"  {what}: done", flush=True)
+    print(f"  {what}: done ({time.monotonic() - _STARTED:.1f} s)", flush=True)
 
 
 def _nothing_registered(bpy) -> list[str]:
@@ -366,8 +369,9 @@ def child_author(config: dict) -> None:
 
     co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
     surface.data.vertices.foreach_get("co", co)
-    top = co.reshape(-1, 3)[:, 2] > 0.35
-    assert top.any() and not top.all(), f"{int(top.sum())} of {len(top)} vertices above 0.35"
+    z = co.reshape(-1, 3)[:, 2]
+    top = z > np.quantile(z, 0.8)  # the mesh's top fifth
+    assert top.any() and not top.all(), f"{int(top.sum())} of {len(top)} vertices in the top fifth"
     bpy.context.view_layer.objects.active = surface
     bpy.ops.object.mode_set(mode="EDIT")
     bm = bmesh.from_edit_mesh(surface.data)
@@ -433,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--worker-python", default=sys.executable, help="the worker's Python, with torch (default: this one)")
     parser.add_argument("--zip", type=Path, help="the extension zip (default: built now with tools/build_extension.py)")
     parser.add_argument("--nerf", type=Path, help="a NeRF checkpoint (default: a tiny one trained now)")
-    parser.add_argument("--steps", type=int, default=300, help="training steps of the tiny NeRF (default 300)")
+    parser.add_argument("--steps", type=int, default=200, help="training steps of the tiny NeRF (default 200: its density peaks near 60, the threshold is 10)")
     parser.add_argument("--timeout", type=float, default=300, help="seconds one step's process may run (default 300)")
     parser.add_argument("--exit-grace", type=float, default=60,
                         help="seconds a process may take to exit once its script finished (default 60)")
@@ -461,8 +465,6 @@ def main(argv: list[str] | None = None) -> int:
     worker = str(Path(args.worker_python).absolute())
     env = {k: v for k, v in os.environ.items() if not k.startswith("BLENDER_") and k not in ("PYTHONPATH", "PYTHONHOME")}
     env["NERF_DEFORM_PYTHON"] = worker
-    # One numba kernel cache for every release's worker (the same worker Python): kernels compile once.
-    env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".smoke" / "numba_cache"))
     started = time.monotonic()
     if args.zip is None:
         sys.path.insert(0, str(REPO))
