@@ -36,7 +36,7 @@ $(STAMP): requirements.txt blender_nerf_deform/engine/requirements.txt
 	@touch $(STAMP)
 
 test: setup
-	$(VPY) -m pytest addon_tests -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(VPY) -m pytest addon_tests -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 demo: setup
 	$(VPY) tools/demo.py

@@ -43,11 +43,16 @@ from fixtures.trained import sphere_nerf  # noqa: E402,F401  (a small trained Ne
 from fixtures.floor_data import floor_nerf  # noqa: E402,F401  (a statue on a floor, rendered by Blender, trained)
 
 
-# The modules that take minutes, heaviest first (measured, BENCHMARKS.md "Test suite"): started first,
-# so that the two xdist workers do not end with one of them running a long module alone.
+# The modules that take minutes, heaviest first (measured: a clean-clone `make test`, BENCHMARKS.md
+# "Test suite"): started first, so that the two xdist workers do not end with one of them running a
+# long module alone. The Makefile passes --no-loadscope-reorder: by default xdist queues the modules
+# with the most tests first, which put the floor NeRF's few tests (a 3-minute fixture) last.
 SLOW_FIRST = ("engine/test_stretch_fidelity.py", "engine/test_region_floor.py", "addon/test_demo.py",
-              "engine/test_hostile_input.py", "engine/test_nerf_train.py", "addon/test_animation_cli.py",
-              "addon/test_worker_setup.py", "addon/test_hostile_addon.py", "addon/test_worker.py")
+              "engine/test_worker_side_requests.py", "addon/test_worker_setup.py", "engine/test_geometry_cli.py",
+              "engine/test_unbounded.py", "engine/test_hostile_input.py", "engine/test_nerf_train.py",
+              "addon/test_train_nerf.py", "addon/test_animation_cli.py", "addon/test_training_preview.py",
+              "addon/test_hostile_addon.py", "addon/test_worker.py", "addon/test_edit_region.py",
+              "addon/test_build_cage.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

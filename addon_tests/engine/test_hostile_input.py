@@ -117,7 +117,7 @@ def _cage_arrays(base) -> dict:
 
 
 def _available_memory() -> int:
-    from blender_nerf_deform.engine.geometry.extract import available_memory
+    from blender_nerf_deform.engine.memory import available_memory
 
     return available_memory() or 0
 
@@ -295,6 +295,8 @@ CASES = {
                                                ("tampered.ckpt", "background.density"), ["frames"]),
     "extract --threshold nan": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "nan"], ("--threshold", "nan"), ["m.ply"]),
     "extract --threshold -1": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "-1"], ("--threshold", "-1"), ["m.ply"]),
+    "render a 100000x100000 camera": lambda b, t: (_render_cams(b, t, _cameras(b, t, w=100000, h=100000)),
+                                                   ("100000x100000 frame", "GiB", "render it smaller"), ["frames"]),
     "extract --resolution 2048": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--resolution", "2048"],
                                                ("resolution 2048", "GiB"), ["m.ply"]),
     "PLY truncated": lambda b, t: (_cage_cmd(b, t, _ply(t, _valid_binary_ply(b)[:-100])), "bad.ply is truncated", ["cage.npz"]),

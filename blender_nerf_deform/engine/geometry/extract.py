@@ -38,6 +38,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import EngineError
+from ..memory import check_memory
 
 DEFAULT_THRESHOLD = 10.0  # volume density of the surface (the NeRF's density is trunc_exp-activated)
 DEFAULT_RESOLUTION = 256
@@ -114,35 +115,11 @@ def check_extract_options(resolution=None, threshold=None, min_volume=None, deci
         raise EngineError(f"--decimate must be a face count of at least 4, got {decimate!r}")
 
 
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux MemAvailable, else free pages), or None."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        import os
-
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (AttributeError, ValueError, OSError):
-        return None
-
-
-def _gib(n: float) -> str:
-    return f"{n / 2**30:.1f} GiB"
-
-
 def check_grid_memory(resolution: int, shape=None) -> None:
     """EngineError, before sampling, when the grid (`resolution`^3 samples, or `shape`) cannot fit in memory."""
     count = float(np.prod(shape)) if shape is not None else float(resolution) ** 3
-    need = BYTES_PER_SAMPLE * count
-    free = available_memory()
-    if free is not None and need > free:
-        raise EngineError(f"extraction at resolution {resolution} needs about {_gib(need)} of memory "
-                          f"({int(count)} density samples), but only {_gib(free)} is available: lower the resolution")
+    check_memory(BYTES_PER_SAMPLE * count, f"extraction at resolution {resolution} ({int(count)} density samples)",
+                 "lower the resolution")
 
 
 def _bounds(bounds) -> np.ndarray:

@@ -51,6 +51,7 @@ import numpy as np
 import torch
 
 from .. import backend
+from ..memory import check_memory
 from . import composite_kernels, march_kernels
 from .camera import Camera  # noqa: F401  (re-exported: renderer.Camera is part of the interface)
 from .contraction import FAR_RADIUS
@@ -521,6 +522,18 @@ def tile_order(width: int, height: int, tile: int = TILE) -> torch.Tensor:
     return torch.argsort((tile_of * tile * tile + inside).reshape(-1))
 
 
+# Peak bytes a frame holds per pixel: `render` to PNG measured 80 (outputs, tile order, the PNG's copy;
+# tools/bench_frame_memory.py, 2026-12-05); the worker's answer to Blender adds 20 in shared memory.
+FRAME_BYTES_PER_PIXEL = 120
+
+
+def check_frame_memory(width: int, height: int) -> None:
+    """EngineError, before anything is allocated, for a frame too large for this machine's memory (a frame's
+    outputs live in host memory also on CUDA, which holds one chunk's work)."""
+    check_memory(float(width) * float(height) * FRAME_BYTES_PER_PIXEL, f"a {width}x{height} frame",
+                 "render it smaller (lower the resolution or its percentage)")
+
+
 @torch.no_grad()
 def render_image(model, camera: Camera, background=None, chunk: int | None = None, **kwargs) -> dict:
     """Render one frame. Returns numpy arrays: `rgba` (H,W,4) float straight alpha, `rgb` (H,W,3)
@@ -530,6 +543,7 @@ def render_image(model, camera: Camera, background=None, chunk: int | None = Non
     are made chunk by chunk, in tile order (the memory of a frame is its outputs and one chunk's work).
     """
     h, w = camera.height, camera.width
+    check_frame_memory(w, h)
     if _render_path == "legacy":
         o, d = camera_rays(camera, device=model.device)
         out = render_rays(model, o, d, background=background, chunk=chunk or 4096, **kwargs)

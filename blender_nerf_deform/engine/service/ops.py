@@ -217,7 +217,7 @@ def _preview_frame(job: Job, camera: Camera, stats: dict, model=None, trainer=No
         PosedRenderer(model).render(camera, None, progress=progress)
     stats.update(width=camera.width, height=camera.height,
                  **{k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
-    return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}
+    return stats, {"rgba": out["rgba"].astype(np.float32, copy=False), "depth": out["depth"].astype(np.float32, copy=False)}
 
 
 def _checked_preview(p: dict) -> str:
@@ -452,4 +452,4 @@ def render(job: Job) -> tuple[dict, dict]:
     stats.update({k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
     if out["inversion"] is not None:
         stats.update(inverted_tets=out["inversion"].n_inverted, degenerate_tets=out["inversion"].n_degenerate)
-    return stats, {"rgba": out["rgba"].astype(np.float32), "depth": out["depth"].astype(np.float32)}
+    return stats, {"rgba": out["rgba"].astype(np.float32, copy=False), "depth": out["depth"].astype(np.float32, copy=False)}
