@@ -45,7 +45,11 @@ def addon(blender, module_worker):
     blender_nerf_deform.register()
     worker_client.adopt_client(module_worker["client"])
     yield blender
-    module_worker["client"] = worker_client.detach_client()
+    client = worker_client.detach_client()
+    if client is not None and client.busy:  # a job left running (a test that failed midway): the next starts clean
+        client.stop()
+        client = None
+    module_worker["client"] = client
     blender_nerf_deform.unregister()
 
 

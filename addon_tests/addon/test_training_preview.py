@@ -44,49 +44,61 @@ def test_a_preview_asked_while_training_comes_back_before_it_ends_then_renders_t
                         on_done=lambda result, arrays: state.update(done=result),
                         on_error=lambda error: state.update(done=error))
     deadline = time.time() + 300
+    try:
 
-    def steps_reported() -> int:
-        return max([int(m.split("step ")[1].split(",")[0]) for m in state["progress"]] or [0])
+        def steps_reported() -> int:
+            return max([int(m.split("step ")[1].split(",")[0]) for m in state["progress"]] or [0])
 
-    while steps_reported() < 80 and time.time() < deadline:  # far enough for the sphere to show
-        client.drain()
-        time.sleep(0.05)
-    assert steps_reported() >= 80, f"the training worker reported {state['progress'][-3:]}"
-    assert bpy.ops.nerf_deform.preview_training.poll()  # a training runs: the button is enabled
+        while steps_reported() < 80 and time.time() < deadline:  # far enough for the sphere to show
+            client.drain()
+            time.sleep(0.05)
+        assert steps_reported() >= 80, f"the training worker reported {state['progress'][-3:]}"
+        assert bpy.ops.nerf_deform.preview_training.poll()  # a training runs: the button is enabled
 
-    # No scene camera: a view of the NeRF's box, at the render resolution's aspect (16:9), 64 px wide.
-    message = _preview_report(bpy, max_size=64)
-    step = int(message.split("step ")[1].split(",")[0])
-    assert message.startswith("64x36 preview of training at step") and step > 0, message
-    image = bpy.data.images[IMAGE_NAME]
-    assert tuple(image.size) == (64, 36)
-    box_view = _pixels(image)
-    assert box_view[..., 3].std() > 0.1 and box_view[..., :3].std() > 0.02  # the sphere's disc, not a constant
+        # No scene camera: a view of the NeRF's box, at the render resolution's aspect (16:9), 64 px wide.
+        message = _preview_report(bpy, max_size=64)
+        step = int(message.split("step ")[1].split(",")[0])
+        assert message.startswith("64x36 preview of training at step") and step > 0, message
+        image = bpy.data.images[IMAGE_NAME]
+        assert tuple(image.size) == (64, 36)
+        box_view = _pixels(image)
+        assert box_view[..., 3].std() > 0.1 and box_view[..., :3].std() > 0.02  # the sphere's disc, not a constant
 
-    # The scene camera, looking at the sphere from -Y: the sphere fills the middle, the corners are empty.
-    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    bpy.context.scene.collection.objects.link(camera)
-    bpy.context.scene.camera = camera
-    camera.location = (0.0, -3.0, 0.0)
-    camera.rotation_euler = (math.pi / 2, 0.0, 0.0)
-    bpy.context.scene.render.resolution_x = bpy.context.scene.render.resolution_y = 320
-    message = _preview_report(bpy, max_size=40)
-    assert message.startswith("40x40 preview of training at step"), message
-    later = int(message.split("step ")[1].split(",")[0])
-    assert later > step
-    front = _pixels(bpy.data.images[IMAGE_NAME])
-    assert front.shape == (40, 40, 4)
-    assert front[15:25, 15:25, 3].mean() > 0.5 and front[:4, :4, 3].mean() < 0.2, front[..., 3].round(1)
+        # The scene camera, looking at the sphere from -Y: the sphere fills the middle, the corners are empty.
+        camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+        bpy.context.scene.collection.objects.link(camera)
+        bpy.context.scene.camera = camera
+        camera.location = (0.0, -3.0, 0.0)
+        camera.rotation_euler = (math.pi / 2, 0.0, 0.0)
+        bpy.context.scene.render.resolution_x = bpy.context.scene.render.resolution_y = 320
+        message = _preview_report(bpy, max_size=40)
+        assert message.startswith("40x40 preview of training at step"), message
+        later = int(message.split("step ")[1].split(",")[0])
+        # Not later than the first: the worker answers between steps, and on a loaded machine the second
+        # request can arrive before the next step ends (the training still advances: its steps below).
+        assert later >= step
+        front = _pixels(bpy.data.images[IMAGE_NAME])
+        assert front.shape == (40, 40, 4)
+        assert front[15:25, 15:25, 3].mean() > 0.5 and front[:4, :4, 3].mean() < 0.2, front[..., 3].round(1)
 
-    # The training was still running all along: it ends only when cancelled, after more steps.
-    client.drain()
-    assert state["done"] is None
-    client.cancel(job)
-    while state["done"] is None and time.time() < deadline:
-        client.drain()
-        time.sleep(0.05)
-    result = state["done"]
-    assert isinstance(result, dict) and result["cancelled"] and result["steps"] >= later, result
+        # The training was still running all along: it goes on past the previews' steps, and ends only
+        # when cancelled.
+        while steps_reported() <= later and state["done"] is None and time.time() < deadline:
+            client.drain()
+            time.sleep(0.05)
+        assert state["done"] is None and steps_reported() > later, state["progress"][-3:]
+        client.cancel(job)
+        while state["done"] is None and time.time() < deadline:
+            client.drain()
+            time.sleep(0.05)
+        result = state["done"]
+        assert isinstance(result, dict) and result["cancelled"] and result["steps"] > later, result
+    finally:  # a failed assertion must not leave the training running in the module's worker
+        if state["done"] is None:
+            client.cancel(job)
+            while state["done"] is None and time.time() < deadline + 60:
+                client.drain()
+                time.sleep(0.05)
 
     # Finished: the panel's run folder holds a checkpoint, and Preview renders it.
     assert not bpy.ops.nerf_deform.preview_training.poll()  # the panel names no run yet
