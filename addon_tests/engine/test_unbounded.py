@@ -131,6 +131,10 @@ def test_an_unbounded_nerf_learns_a_room_that_a_bounded_one_cannot(tmp_path):
         model = NerfModel(cfg)
         Trainer(model, train, TrainOptions(steps=400, target_samples=1 << 13, occ_warmup_steps=64)).train(progress=False)
         model.eval()
+        if scene == "unbounded":
+            # The unbounded threshold prunes the thin fog a room leaves in the grid (0.01: 52 % of the
+            # inner cells kept, 150 samples per ray; 0.1: 22 %, 79), so rays march where surfaces are.
+            assert model.occupancy.mask.float().mean() < 0.35
         scores[scene] = (float(np.mean(evaluate(model, train.subset(range(0, 24, 4))))), float(np.mean(evaluate(model, test))))
     # The walls lie outside the bounded box: the bounded NeRF can only paint them on its faces, which
     # fits neither its own views nor new ones.

@@ -350,6 +350,15 @@ DEFAULT_SECONDS = 300.0
 SCENE_MODELS = ("auto", "bounded", "unbounded")
 
 
+# An unbounded NeRF's cell is occupied when its opacity over one render step (inner diagonal / 256)
+# exceeds 0.1: about instant-ngp's density threshold (0.01 over sqrt(3)/1024 of its unit cube) on the
+# fox. The bounded default 0.01 left 85-99 % of a real capture's cells occupied, so training rays
+# marched 100-200 samples through fog that nothing pruned. Fox, 180 s, photos never tuned on
+# (BENCHMARKS.md, issue 28): 0.01 / 0.04 / 0.1 / 0.25 -> 25.4 / 27.7 / 28.3 / 28.0 dB, 100 / 28 / 16 /
+# 13 training samples per ray, 8.5 / 2.7 / 1.6 / 1.3 s per 270x480 frame.
+UNBOUNDED_OCC_THRESHOLD = 0.1
+
+
 def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     """The model for a dataset: bounded in its box, or unbounded around its inner box (see the module
     docstring). The unbounded hash grid spans the contracted cube, of which the inner box is the
@@ -363,7 +372,10 @@ def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     # Half the bounded model's samples per diagonal: on fox (2 min) the same PSNR as 512 (25.3 dB) with
     # 13 % fewer samples per ray (BENCHMARKS.md, issue 13).
     return NerfConfig(aabb=[float(v) for v in inner.reshape(-1)], contraction="linf", steps_per_diagonal=256,
-                      finest_resolution=2 * base.finest_resolution, near_plane=0.05 * half)
+                      finest_resolution=2 * base.finest_resolution, near_plane=0.05 * half,
+                      occ_threshold=UNBOUNDED_OCC_THRESHOLD)
+
+
 SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.manual_seed accepts
 LOCK_NAME = ".train.lock"
 
