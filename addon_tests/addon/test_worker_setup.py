@@ -66,6 +66,8 @@ def test_setup_creates_the_environment_and_sets_worker_python(enabled, env_folde
     assert _imports_torch(python).startswith(worker_setup.pins()["torch"])
     assert not (env_folder / "worker-env.partial").exists()
     assert worker_setup.check_environment(python)["ok"]
+    # Last, the engine's kernels were compiled into the cache the worker reads (engine `compile`).
+    assert "the kernels are compiled" in (env_folder / "worker-env-setup.log").read_text()
     # The environment really runs the worker: the add-on's own client starts on it and answers.
     client = sys.modules[f"{EXT_MODULE}.addon.jobs"].worker(bpy.context)
     try:

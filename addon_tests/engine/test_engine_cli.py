@@ -5,7 +5,7 @@ import sys
 
 from fixtures import REPO
 
-COMMANDS = ("train", "eval", "render", "extract", "cage", "prepare")
+COMMANDS = ("train", "eval", "render", "extract", "cage", "prepare", "compile")
 
 # Runs the CLI with bpy made unimportable, then reports which heavy modules got loaded.
 _RUN_WITHOUT_BPY = """

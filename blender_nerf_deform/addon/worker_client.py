@@ -82,6 +82,22 @@ class _Request:
     resent: bool = False
 
 
+def worker_environment(inherit_pythonpath: bool = True) -> tuple[dict, str]:
+    """(environment, working folder) of an engine process started for the worker: the engine's package
+    importable, and its compiled files (numba's kernel cache, Python's bytecode) in the user folder,
+    so that Set Up Worker's `compile` fills the cache the worker reads. An installed extension's own
+    folder is Blender's to replace, not ours to write."""
+    env = dict(os.environ)
+    env.pop("PYTHONHOME", None)
+    inherited = env.get("PYTHONPATH", "") if inherit_pythonpath else ""
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PACKAGE_DIR.parent), inherited) if p)
+    env["PYTHONUNBUFFERED"] = "1"
+    work = worker_directory()
+    env.setdefault("NUMBA_CACHE_DIR", os.path.join(work, "numba_cache"))
+    env.setdefault("PYTHONPYCACHEPREFIX", os.path.join(work, "pycache"))
+    return env, work
+
+
 def worker_directory() -> str:
     """The worker's working folder: the extension's user folder (never the extension's own
     folder, which Blender may replace on update), or a temporary one when not an extension."""
@@ -166,15 +182,7 @@ class WorkerClient:
             raise WorkerError("no worker Python is set: set NeRF Deform's Worker Python preference to a Python 3.11 with torch", "setup")
         if not Path(self.python).is_file():
             raise WorkerError(f"worker Python {self.python} does not exist: fix NeRF Deform's Worker Python preference", "setup")
-        env = dict(os.environ)
-        env.pop("PYTHONHOME", None)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PACKAGE_DIR.parent), env.get("PYTHONPATH", "")) if p)
-        env["PYTHONUNBUFFERED"] = "1"
-        work = worker_directory()
-        # The worker's compiled files (numba's kernel cache, Python's bytecode) go to the user
-        # folder too: an installed extension's own folder is Blender's to replace, not ours to write.
-        env.setdefault("NUMBA_CACHE_DIR", os.path.join(work, "numba_cache"))
-        env.setdefault("PYTHONPYCACHEPREFIX", os.path.join(work, "pycache"))
+        env, work = worker_environment()
         self._stderr_tail.clear()
         self._given.clear()  # a new worker holds nothing yet
         try:

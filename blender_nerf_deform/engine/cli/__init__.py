@@ -124,6 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of COLMAP's random choices (default 0)")
     p.set_defaults(handler=_command("prepare"))
 
+    p = sub.add_parser("compile", help="compile the CPU kernels once, so the first train or render on this machine "
+                       "does not wait for them (numba's cache: NUMBA_CACHE_DIR, else beside the sources)")
+    p.set_defaults(handler=_command("compile"))
+
     return parser
 
 
