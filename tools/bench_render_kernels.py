@@ -8,6 +8,7 @@ SH encoding of 300k directions, contraction of 1M points, per-ray transmittance 
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -33,6 +34,7 @@ def best_ms(f, n=5) -> float:
 
 
 def main() -> int:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     g = torch.Generator().manual_seed(0)
     d = torch.nn.functional.normalize(torch.randn(300000, 3, generator=g), dim=1)
     p = torch.randn(1000000, 3, generator=g) * 4

@@ -27,6 +27,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE = REPO / "blender_nerf_deform"
 MANIFEST = REPO / "blender_manifest.toml"
+ARCHITECTURE = REPO / "docs" / "ARCHITECTURE.md"
 _IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", ".*")
 
 
@@ -61,6 +62,9 @@ def stage(dest: Path, manifest: Path = MANIFEST) -> Path:
     """Lay out the extension's source as Blender wants it: the manifest beside the package's files."""
     shutil.copytree(PACKAGE, dest, ignore=_IGNORE)
     shutil.copy2(manifest, dest / "blender_manifest.toml")
+    # The docstrings send readers to docs/ARCHITECTURE.md: an installed extension carries it too.
+    (dest / "docs").mkdir()
+    shutil.copy2(ARCHITECTURE, dest / "docs" / "ARCHITECTURE.md")
     return dest
 
 

@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
-"""Check the layering rule of DESIGN.md by reading imports from the source.
+"""Check the layering rule of docs/ARCHITECTURE.md by reading imports from the source.
 
 - `engine/` never imports Blender's modules (bpy and friends).
 - `addon/` never imports torch, neither directly nor through an engine module
   it imports (or the packages above it, which Python runs first); and the
   engine modules it imports reach nothing but the standard library and numpy
   (all that Blender's own Python has besides bpy).
-- No import cycle among the engine's modules.
-- The plumbing holds no stage logic (DESIGN.md, "Layout"): `engine/cli/` and
+- No import cycle among the engine's modules, nor among the add-on's.
+- The add-on's layers (ADDON_LAYERS): a module imports only from its own layer or lower ones.
+- The plumbing holds no stage logic (docs/ARCHITECTURE.md, section 2): `engine/cli/` and
   `engine/service/` import no numerical library but numpy (no torch, numba,
   scipy, scikit-image, trimesh, libigl, pytetwild, PIL): the numbers are
   computed by the stage packages they call. And the stages never import the
@@ -30,6 +31,21 @@ ADDON_SAFE = set(sys.stdlib_module_names) | {"numpy"}
 # Libraries that do a stage's work: the command line and the worker call stages instead.
 STAGE_LIBRARIES = TORCH_MODULES | {"numba", "llvmlite", "scipy", "skimage", "trimesh", "igl", "pytetwild", "PIL"}
 PLUMBING = ("cli", "service")
+# The add-on's layers, bottom up (docs/ARCHITECTURE.md, "The add-on in layers"): a module imports only
+# from its own layer or lower ones, also inside functions. The modules still sit in one folder (moving
+# them into sub-packages by layer is pending), so this table says where each belongs; a new module
+# must be placed here. addon/__init__.py registers them all and is above every layer.
+ADDON_LAYERS = (
+    ("data", ("properties", "cage_store", "camera", "paths", "images", "depth_compositing")),
+    ("worker", ("worker_client", "jobs", "worker_setup")),
+    ("capture", ("capture_ops", "dataset_capture", "capture_runner")),
+    ("train", ("train_ops", "training_preview", "photos_ops")),
+    ("edit", ("nerf_ops", "region_ops", "pick_ops", "extract_ops", "cage_ops")),
+    ("deform", ("handles", "deformation", "preview")),
+    ("render", ("frame_render", "render_engine", "viewport", "preview_render", "composite")),
+    ("ui", ("panel", "scene_panel", "preferences")),
+    ("api", ("api",)),
+)
 
 
 def _module_name(package_root: Path, path: Path) -> str:
@@ -112,7 +128,9 @@ def import_cycle(graph: dict, prefix: str) -> list[str] | None:
     return None
 
 
-def violations(package_root: Path) -> list[str]:
+def violations(package_root: Path, addon_layers=ADDON_LAYERS) -> list[str]:
+    """Every breach of the rules above, one line each. `addon_layers` None: no layer order (a package
+    whose add-on modules are not the project's, as in the checker's own tests)."""
     pkg = package_root.name
     graph = import_graph(package_root)
     problems = []
@@ -138,6 +156,24 @@ def violations(package_root: Path) -> list[str]:
             if part and part not in PLUMBING + ("__main__",) and target in PLUMBING and (path, line) not in reported:
                 reported.add((path, line))
                 problems.append(f"{path}:{line}: stage module {module} imports {name} (stages never import engine/cli or engine/service)")
+
+    addon = f"{pkg}.addon"
+    cycle = import_cycle(graph, addon)
+    if cycle:
+        problems.append(f"{graph[cycle[0]][0]}: import cycle in addon/: {' -> '.join(cycle)}")
+    rank = {f"{addon}.{m}": (i, layer) for i, (layer, modules) in enumerate(addon_layers or ()) for m in modules}
+    for module, (path, imports) in graph.items():
+        if addon_layers is None or not module.startswith(addon + ".") or module.endswith("__init__"):
+            continue
+        if module not in rank:
+            problems.append(f"{path}: {module} has no layer: place it in ADDON_LAYERS (tools/check_layering.py)")
+            continue
+        for line, name in imports:
+            target = next((t for t in _with_parents(name, pkg) if t in rank), None)
+            if target is not None and rank[target][0] > rank[module][0] and (path, line) not in reported:
+                reported.add((path, line))
+                problems.append(f"{path}:{line}: {module} ({rank[module][1]}) imports {target} ({rank[target][1]}): "
+                                "imports run from higher layers to lower ones only")
 
     # A module Blender's Python lacks, reachable from addon/ through any chain of engine modules.
     def reaches_unsafe(module: str, seen: set[str]) -> list[str] | None:

@@ -82,7 +82,7 @@ def test_validator_rejects_a_broken_manifest(tmp_path):
 def test_zip_has_the_extension_layout(extension_zip):
     names = set(zipfile.ZipFile(extension_zip).namelist())
     assert {"blender_manifest.toml", "__init__.py", "addon/__init__.py", "engine/__init__.py",
-            "addon/capture_runner.py", "addon/dataset_capture.py"} <= names
+            "addon/capture_runner.py", "addon/dataset_capture.py", "docs/ARCHITECTURE.md"} <= names
     assert not any("__pycache__" in name or name.endswith(".pyc") for name in names)
 
 
@@ -146,8 +146,8 @@ def test_preview_poll_makes_no_folders(installed, tmp_path):
     bpy.context.scene.nerf_deform_training.photos = str(tmp_path / "some_photos")
     assert not bpy.ops.nerf_deform.preview_training.poll()
     assert not runs.exists()
-    train_ops = sys.modules[f"{EXT_MODULE}.addon.train_ops"]
-    assert Path(train_ops.default_run_folder(str(tmp_path / "some_dataset"))).parent == runs and runs.is_dir()
+    paths = sys.modules[f"{EXT_MODULE}.addon.paths"]
+    assert Path(paths.default_run_folder(str(tmp_path / "some_dataset"))).parent == runs and runs.is_dir()
 
 
 def test_disabling_leaves_nothing_registered(installed):

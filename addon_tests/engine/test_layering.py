@@ -1,14 +1,49 @@
-"""The layering rule of DESIGN.md, read from the source: engine/ has no bpy, addon/ has no torch."""
+"""The layering rule (docs/ARCHITECTURE.md), read from the source: engine/ has no bpy, addon/ has no torch."""
 
 from pathlib import Path
 
-from tools.check_layering import violations
+from tools.check_layering import ADDON_LAYERS, violations as check
 
 from fixtures import REPO
 
 
+def violations(root: Path, addon_layers=None) -> list[str]:
+    """The checker on a made-up package (its add-on modules are not the project's: no layer table)."""
+    return check(root, addon_layers=addon_layers)
+
+
 def test_project_respects_layering():
-    assert violations(REPO / "blender_nerf_deform") == []
+    assert check(REPO / "blender_nerf_deform") == []
+
+
+LAYERS = (("data", ("store",)), ("worker", ("client",)), ("edit", ("ops",)), ("ui", ("panel",)))
+
+
+def test_checker_catches_an_import_cycle_in_the_addon_through_a_function(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "addon/store.py", "import bpy\n")
+    _write(root, "addon/ops.py", "from .store import x\n")
+    _write(root, "addon/client.py", "def f():\n    from .ops import y\n")
+    _write(root, "addon/store.py", "from .client import z\n")
+    problems = violations(root)
+    assert any("import cycle in addon/" in p for p in problems), problems
+
+
+def test_checker_catches_an_addon_import_from_a_higher_layer(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "addon/store.py", "")
+    _write(root, "addon/panel.py", "from .store import prop\n")  # ui -> data: down, allowed
+    _write(root, "addon/ops.py", "from . import store\n\ndef f():\n    from .panel import draw\n")  # edit -> ui: up
+    (problem,) = violations(root, LAYERS)
+    assert "addon/ops.py:4" in problem and "(edit) imports" in problem and "(ui)" in problem
+
+
+def test_checker_asks_for_a_new_addon_module_s_layer(tmp_path):
+    root = _fake_package(tmp_path)
+    _write(root, "addon/store.py", "")
+    _write(root, "addon/newcomer.py", "from . import store\n")
+    (problem,) = violations(root, LAYERS)
+    assert "newcomer has no layer" in problem
 
 
 def _write(root: Path, rel: str, text: str) -> None:

@@ -60,7 +60,7 @@ def _look_at(eye, target) -> np.ndarray:
 
 
 def _pixel_rays(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Origin (3,) and unit directions (H, W, 3) through the pixel centres (DESIGN.md's convention)."""
+    """Origin (3,) and unit directions (H, W, 3) through the pixel centres (docs/ARCHITECTURE.md's convention)."""
     i, j = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
     d = np.stack([(i - cam.cx) / cam.fx, -(j - cam.cy) / cam.fy, -np.ones_like(i)], -1) @ cam.c2w[:3, :3].T
     return cam.c2w[:3, 3], d / np.linalg.norm(d, axis=-1, keepdims=True)

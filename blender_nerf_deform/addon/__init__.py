@@ -1,4 +1,4 @@
-"""The Blender half: bpy and numpy only, never torch (DESIGN.md).
+"""The Blender half: bpy and numpy only, never torch (docs/ARCHITECTURE.md).
 
 Properties, operators, panels and the RenderEngine live here; heavy work is
 sent to the engine in a worker process.

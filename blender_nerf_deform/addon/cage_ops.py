@@ -13,8 +13,8 @@ import numpy as np
 from .cage_store import cage_vertex_parts, store_cage, store_cut_pins, store_embedding
 from .extract_ops import cut_flags, part_labels, set_part_labels
 from .jobs import WorkerOperator
-from .nerf_ops import checkpoint_path
-from .preview import PREVIEW_KEY
+from .paths import checkpoint_path
+from .properties import PREVIEW_KEY
 from .properties import OnNeRF, alive, alive_object, forget_deleted, owning_nerf
 from .region_ops import edit_regions_of, extracted_regions, same_regions
 

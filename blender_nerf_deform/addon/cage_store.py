@@ -37,6 +37,7 @@ import numpy as np
 
 from ..engine.geometry.barycentric import boundary_faces
 from ..engine.service.protocol import content_key
+from .properties import CageDataError, to_nerf_frame
 
 REST_KEY = "nerf_deform_rest_vertices"
 TETS_KEY = "nerf_deform_tets"
@@ -54,10 +55,6 @@ def _set_property(idblock, name: str, value) -> None:
     if name in idblock:
         del idblock[name]  # never assign over an array of another length (module docstring)
     idblock[name] = value
-
-
-class CageDataError(ValueError):
-    """Stored cage or embedding data is missing or no longer matches its mesh."""
 
 
 def set_triangles(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray) -> None:
@@ -199,8 +196,6 @@ def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.
 
 def deformed_cage_in_nerf_frame(nerf: bpy.types.Object, cage_object: bpy.types.Object, depsgraph) -> np.ndarray:
     """The cage as its modifiers and its own placement deform it, in the NeRF's frame."""
-    from .properties import to_nerf_frame  # (properties imports this module)
-
     local = evaluated_cage_vertices(cage_object, depsgraph)
     nerf_eval, cage_eval = nerf.evaluated_get(depsgraph), cage_object.evaluated_get(depsgraph)
     relative = np.array(to_nerf_frame(nerf, nerf_eval.matrix_world)) @ np.array(cage_eval.matrix_world)

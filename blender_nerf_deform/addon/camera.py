@@ -5,7 +5,7 @@ sensor fit picks which image side the sensor spans (AUTO: the larger one, in
 aspect-corrected pixels), shift moves the view plane in units of that side,
 pixel aspect stretches rows (ycor = yasp / xasp), and the resolution
 percentage scales the pixel grid. Rays go through pixel centres and the
-camera looks down its local -Z with +Y up (DESIGN.md), so pixel (i, j),
+camera looks down its local -Z with +Y up (docs/ARCHITECTURE.md, Conventions), so pixel (i, j),
 j counted from the top row, has the camera-space direction
 
     ((i + 0.5 - cx) / fx, -(j + 0.5 - cy) / fy, -1)

@@ -56,7 +56,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, In
 
 from . import dataset_capture
 from .capture_runner import PREFIX
-from .worker_client import PACKAGE_DIR_MODULE
+from .paths import project_folder
 
 RUNNER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "capture_runner.py")
 DATASET_ENTRIES = {"transforms.json", "images", "test"}  # what a destination may hold to be replaced
@@ -70,13 +70,7 @@ class CaptureError(Exception):
 def default_output_folder(scene_name: str) -> str:
     """//nerf_datasets/<scene> beside a saved .blend, else the extension's user folder."""
     name = re.sub(r'[\x00-\x1f/\\:*?"<>|]', "_", scene_name).strip(" .") or "scene"
-    if bpy.data.filepath:
-        return os.path.join(os.path.dirname(bpy.data.filepath), "nerf_datasets", name)
-    try:
-        root = bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, path="datasets", create=True)
-    except (ValueError, AttributeError):  # imported directly, not enabled as an extension
-        root = os.path.join(tempfile.gettempdir(), "nerf_deform_datasets")
-    return os.path.join(root, name)
+    return project_folder("nerf_datasets", "datasets", name)
 
 
 def runner_command(blend: str, config: str) -> list[str]:

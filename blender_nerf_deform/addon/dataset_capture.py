@@ -58,7 +58,7 @@ transforms.json keys:
                                      box the object lies in (the engine's scene bounds)
     generator                        how the views were made (tool, options)
 
-Camera convention (DESIGN.md): the camera looks down its local -Z with +Y up;
+Camera convention (docs/ARCHITECTURE.md, Conventions): the camera looks down its local -Z with +Y up;
 pixel (i, j) (column i, row j counted from the top of the image) is the ray
 
     d_camera = ((i + 0.5 - cx) / fl_x,  -(j + 0.5 - cy) / fl_y,  -1)

@@ -14,13 +14,13 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from .images import srgb_to_linear
 from .cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY, EMBED_WEIGHTS_KEY, repair_selection_attributes,
                          set_triangles)
 from .jobs import WorkerOperator
-from .nerf_ops import checkpoint_path
+from .paths import checkpoint_path
 from .properties import OnNeRF, alive, alive_object, forget_deleted, handles_of, owning_nerf, to_nerf_frame
 from .region_ops import SURFACE_REGION_KEY, edit_regions_of, encode_regions, regions_of
-from .frame_render import srgb_to_linear
 
 COLOR_ATTRIBUTE = "NeRF Color"
 CUT_ATTRIBUTE = "NeRF Cut"

@@ -29,15 +29,12 @@ import numpy as np
 from ..engine.service.protocol import content_key
 from . import jobs
 from .camera import CameraError, Pinhole, pinhole_from_blender
+from .images import srgb_to_linear
 from .depth_compositing import HIT_ALPHA, NO_HIT_DEPTH, composite_by_depth
 from .deformation import frame_pose
-from .nerf_ops import checkpoint_path
+from .paths import checkpoint_path
 from .properties import to_nerf_frame
 from .worker_client import WorkerError
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
 
 def nerfs_to_render(depsgraph) -> list[bpy.types.Object]:
     """The NeRF objects the depsgraph shows (originals, by name). A render's depsgraph leaves out

@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import bpy
 
-from . import preferences
+from .paths import worker_python
 from .worker_client import WorkerClient, WorkerError, detect_python, get_client
 
 
@@ -33,7 +33,7 @@ _detected: dict[str, str | None] = {}
 def worker(context) -> WorkerClient:
     """The shared worker, on the preferred Python or the first one found with torch (looked for
     once per preference value: detection starts interpreters)."""
-    preferred = preferences.worker_python(context)
+    preferred = worker_python(context)
     preferred = bpy.path.abspath(preferred) if preferred else ""
     if _detected.get(preferred) is None:
         _detected[preferred] = detect_python(preferred)

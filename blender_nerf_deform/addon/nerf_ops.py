@@ -14,11 +14,6 @@ from .properties import add_app_handlers, remove_app_handlers, select_only
 NERFDEFORM_ENGINE = "NERF_DEFORM"
 
 
-def checkpoint_path(nerf: bpy.types.Object) -> str:
-    """The NeRF's checkpoint as an absolute path (stored relative to the .blend when it is saved)."""
-    return os.path.normpath(bpy.path.abspath(nerf.nerf_deform.checkpoint))
-
-
 def relative_if_possible(path: str, start: str | None = None) -> str:
     """`//`-relative to the folder `start` (default: the .blend's, when it is saved) where the
     path is on the same drive, else absolute."""

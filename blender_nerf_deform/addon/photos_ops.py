@@ -24,7 +24,8 @@ from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from ..engine.sfm import IMAGE_SUFFIXES
 from .jobs import WorkerOperator, WorkerRequest
-from .train_ops import default_run_folder, show_trained, train_params
+from .paths import default_run_folder
+from .train_ops import show_trained, train_params
 
 MIN_PHOTOS = 3  # what structure from motion needs at the very least
 

@@ -16,7 +16,7 @@ from bpy.props import FloatVectorProperty
 from mathutils import Vector
 
 from .jobs import worker
-from .nerf_ops import checkpoint_path
+from .paths import checkpoint_path
 from .properties import OnNeRF, owning_nerf, to_nerf_frame
 from .worker_client import WorkerError
 

@@ -4,9 +4,8 @@
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
-# The extension's top-level package: `bl_ext.<repo>.blender_nerf_deform` when
-# enabled as an extension, `blender_nerf_deform` when imported directly.
-ADDON_PACKAGE = __package__.rpartition(".")[0]
+from . import worker_setup
+from .paths import ADDON_PACKAGE  # the name Blender knows the add-on's preferences by
 
 
 class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
@@ -42,26 +41,10 @@ class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
     )
 
     def draw(self, context):
-        from . import worker_setup
-
         layout = self.layout
         layout.prop(self, "worker_python")
         layout.label(text="A Python 3.11 with torch (CPU or CUDA): set one up below, or see the README.")
         worker_setup.draw_setup(layout, context)
-
-
-def addon_preferences(context=None):
-    """The add-on's preferences, or None when it was imported directly rather than enabled."""
-    context = context or bpy.context
-    addon = context.preferences.addons.get(ADDON_PACKAGE)
-    return addon.preferences if addon is not None else None
-
-
-def worker_python(context=None) -> str:
-    """The Worker Python preference ("" when unset, or when the add-on was imported
-    directly rather than enabled, so it has no preferences)."""
-    prefs = addon_preferences(context)
-    return prefs.worker_python if prefs is not None else ""
 
 
 _classes = (NERFDEFORM_AddonPreferences,)

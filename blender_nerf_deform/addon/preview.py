@@ -31,10 +31,8 @@ from ..engine.geometry.embedding import Embedding
 from . import jobs
 from .cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
 from .deformation import AsyncSolver, handle_pose
-from .properties import add_app_handlers, remove_app_handlers, settings
+from .properties import PREVIEW_KEY, add_app_handlers, remove_app_handlers, settings
 from .worker_client import WorkerError
-
-PREVIEW_KEY = "NeRF Deform"
 
 _updating = False
 _rendering = False  # between render_init and render_complete / render_cancel

@@ -18,39 +18,11 @@ import numpy as np
 from . import jobs
 from .camera import CameraError
 from .frame_render import nerf_pose, nerfs_to_render, scene_pinhole
+from .images import show_in_image_editors, write_image
 from .viewport import DOWNSCALES, ProgressiveRender
 from .worker_client import WorkerError
 
 IMAGE_NAME = "NeRF Preview"
-
-
-def show_in_image_editors(image: bpy.types.Image) -> None:
-    """Show `image` in every open Image Editor that shows nothing or a previous preview, and redraw."""
-    wm = bpy.context.window_manager
-    for window in wm.windows if wm else ():
-        for area in window.screen.areas:
-            if area.type != "IMAGE_EDITOR":
-                continue
-            space = area.spaces.active
-            if space.image is None or space.image == image:
-                space.image = image
-            area.tag_redraw()
-
-
-def write_image(rgba: np.ndarray, name: str = IMAGE_NAME) -> bpy.types.Image:
-    """Put a premultiplied scene-linear frame (rows top-down) into the image `name` (default "NeRF
-    Preview"; linear float, straight alpha, rows bottom-up)."""
-    height, width = rgba.shape[:2]
-    image = bpy.data.images.get(name)
-    if image is None:
-        image = bpy.data.images.new(name, width, height, alpha=True, float_buffer=True)
-    elif tuple(image.size) != (width, height):
-        image.scale(width, height)
-    alpha = rgba[..., 3:]
-    straight = np.concatenate([np.where(alpha > 0, rgba[..., :3] / np.maximum(alpha, 1e-12), 0.0), alpha], axis=-1)
-    image.pixels.foreach_set(np.ascontiguousarray(straight[::-1], dtype=np.float32).ravel())
-    image.update()
-    return image
 
 
 class PreviewJob:
@@ -81,7 +53,7 @@ class PreviewJob:
         self._render.start()
 
     def _arrived(self, _render, rgba: np.ndarray, _depth, _downscale) -> None:
-        show_in_image_editors(write_image(rgba))
+        show_in_image_editors(write_image(rgba, IMAGE_NAME))
 
     def cancel(self) -> None:
         self._render.cancel()

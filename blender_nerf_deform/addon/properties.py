@@ -25,7 +25,13 @@ import bpy
 from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
 
-from .cage_store import CageDataError
+
+class CageDataError(ValueError):
+    """Stored cage or embedding data is missing or no longer matches its mesh (cage_store.py reads it)."""
+
+
+# The surface mesh's shape key that the live preview (preview.py) writes the deformation into.
+PREVIEW_KEY = "NeRF Deform"
 
 ROLES = (
     ("NONE", "None", "Not part of a NeRF"),
@@ -191,8 +197,6 @@ def handles_of(nerf: bpy.types.Object, *, with_regions: bool = True) -> list[bpy
 def forget_deleted() -> int:
     """Clear our pointers to deleted objects (module docstring); returns how many were cleared.
     A NeRF whose cage is gone renders at rest, and so its mesh's preview goes back to rest."""
-    from .preview import PREVIEW_KEY  # (preview imports this module)
-
     cleared = 0
     for obj in bpy.data.objects:
         s = obj.nerf_deform

@@ -30,29 +30,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 
 from . import training_preview
 from .jobs import WorkerOperator
-from .worker_client import PACKAGE_DIR_MODULE
-
-
-def default_run_folder(data: str, create: bool = True) -> str:
-    """Beside the saved .blend (//nerf_runs/<name>), else in the extension's user folder (made only
-    with `create`: a panel's poll asks where a run would be without making folders)."""
-    name = os.path.basename(os.path.normpath(data)) or "nerf"
-    if bpy.data.filepath:
-        return os.path.join(os.path.dirname(bpy.data.filepath), "nerf_runs", name)
-    try:
-        root = bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, path="runs", create=create)
-    except (ValueError, AttributeError):  # imported directly, not enabled as an extension
-        import tempfile
-
-        root = os.path.join(tempfile.gettempdir(), "nerf_deform_runs")
-    return os.path.join(root, name)
-
-
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
+from .paths import default_run_folder, same_file
 
 
 def train_params(data: str, out: str, seconds: float, steps: int, device: str, downscale: int, resume: bool) -> dict:
@@ -73,7 +51,7 @@ def show_trained(op, context, result: dict, ckpt: str) -> set[str]:
     op.report({"INFO"}, f"{op.bl_label} {how}: {result.get('steps', 0)} steps in {result.get('seconds', 0):.0f} s, "
                         f"batch PSNR {result.get('psnr', float('nan')):.1f} dB -> {ckpt}")
     existing = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF" and o.users_collection
-                and o.nerf_deform.checkpoint and _same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)]
+                and o.nerf_deform.checkpoint and same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)]
     if existing:
         for nerf in existing:
             nerf.update_tag()  # renders and the viewport take the new weights (the worker reloads the file)

@@ -31,8 +31,8 @@ from bpy.props import IntProperty, StringProperty
 
 from . import jobs
 from .camera import CameraError, pinhole_from_blender, render_size
-from .frame_render import srgb_to_linear
-from .preview_render import show_in_image_editors, write_image
+from .images import show_in_image_editors, srgb_to_linear, write_image
+from .paths import default_run_folder, same_file
 from .properties import PlacementError, to_nerf_frame
 from .worker_client import WorkerError, active_client
 
@@ -52,7 +52,6 @@ def running_checkpoints() -> list[str]:
 def panel_checkpoints(context) -> list[str]:
     """Where the Train panel's runs write their checkpoints: its run folder (or its dataset's default),
     and its photos' default (Import Photos)."""
-    from .train_ops import default_run_folder
 
     t = context.scene.nerf_deform_training
     found = []
@@ -69,19 +68,12 @@ def can_preview(context) -> bool:
     return bool(running_checkpoints()) or any(os.path.isfile(c) for c in panel_checkpoints(context))
 
 
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
 def world_to_nerf(context, checkpoint: str) -> np.ndarray:
     """World → the NeRF's frame: the NeRF object's showing `checkpoint`, else where Load NeRF will put it
     (its origin at the 3D cursor)."""
     for nerf in bpy.data.objects:
         s = nerf.nerf_deform
-        if s.role == "NERF" and s.checkpoint and nerf.users_collection and _same_file(bpy.path.abspath(s.checkpoint), checkpoint):
+        if s.role == "NERF" and s.checkpoint and nerf.users_collection and same_file(bpy.path.abspath(s.checkpoint), checkpoint):
             return np.array(to_nerf_frame(nerf), dtype=np.float64)
     to_nerf = np.eye(4)
     to_nerf[:3, 3] = -np.array(context.scene.cursor.location, dtype=np.float64)

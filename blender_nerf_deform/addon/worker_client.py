@@ -1,4 +1,4 @@
-"""Client of the engine worker process (DESIGN.md: "a worker process between them").
+"""Client of the engine worker process (docs/ARCHITECTURE.md, "Two halves and a worker process").
 
 Blender never imports torch: heavy work runs in `python -m
 <package>.engine.service.worker` on the Python set in the add-on preferences. A reader
@@ -21,7 +21,7 @@ runs Blender's own exit only when the `bpy` module is freed: a process with a
 preview solve still queued segfaulted at exit in 4.2 (exit 139) and hung there
 in 4.5. Blender 5.x exits either way.
 
-The worker session (DESIGN.md): a request may name shared content, `shared =
+The worker session (docs/ARCHITECTURE.md): a request may name shared content, `shared =
 {slot: (content key, loader)}`. The client remembers what it gave the running
 worker and calls a slot's loader (and sends its arrays) only for a key that
 worker has not been given; a worker that answers "missing" (it dropped the
@@ -52,8 +52,6 @@ from ..engine.service.protocol import ProtocolError, read_message, write_message
 # engine from the folder's parent.
 PACKAGE_DIR = Path(__file__).resolve().parent.parent
 WORKER_MODULE = f"{PACKAGE_DIR.name}.engine.service.worker"
-# This add-on's top-level module (`bl_ext.<repo>.blender_nerf_deform` as an extension).
-PACKAGE_DIR_MODULE = __package__.rpartition(".")[0]
 # How long a starting worker may take to answer (importing torch, compiling kernels on a busy
 # machine take minutes); $NERF_DEFORM_WORKER_START_TIMEOUT (seconds) overrides it.
 START_TIMEOUT_S = 300.0
@@ -106,7 +104,9 @@ def worker_directory() -> str:
     try:
         import bpy
 
-        return bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, path="worker", create=True)
+        from .paths import ADDON_PACKAGE  # imports bpy: this module also runs without it
+
+        return bpy.utils.extension_path_user(ADDON_PACKAGE, path="worker", create=True)
     except (ImportError, ValueError, AttributeError):
         path = os.path.join(tempfile.gettempdir(), "nerf_deform_worker")
         os.makedirs(path, exist_ok=True)

@@ -1,7 +1,7 @@
 """Set Up Worker: the add-on makes the Python environment its engine worker runs in.
 
 The engine needs torch and a dozen other packages that Blender's Python does not have and
-must not get (DESIGN.md: the add-on never imports torch). After the user confirms, this
+must not get (docs/ARCHITECTURE.md: the add-on never imports torch). After the user confirms, this
 creates a virtual environment under the extension's user folder
 (`bpy.utils.extension_path_user(<package>, path="worker-env")`, never the extension's own
 folder, which Blender replaces on update), installs the engine's pinned requirements
@@ -45,8 +45,9 @@ from pathlib import Path
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from . import preferences, worker_client
-from .worker_client import PACKAGE_DIR, PACKAGE_DIR_MODULE
+from . import worker_client
+from .paths import ADDON_PACKAGE, addon_preferences
+from .worker_client import PACKAGE_DIR
 
 REQUIREMENTS = PACKAGE_DIR / "engine" / "requirements.txt"
 ENV_NAME = "worker-env"
@@ -75,7 +76,7 @@ def user_folder(create: bool = True) -> Path:
     """Where the environment goes: the extension's user folder (a temporary one when the add-on was
     imported directly rather than enabled as an extension, which has no user folder)."""
     try:
-        return Path(bpy.utils.extension_path_user(PACKAGE_DIR_MODULE, create=create))
+        return Path(bpy.utils.extension_path_user(ADDON_PACKAGE, create=create))
     except (ValueError, AttributeError):
         import tempfile
 
@@ -418,7 +419,7 @@ class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
     background: BoolProperty(options={"HIDDEN", "SKIP_SAVE"}, default=False)  # set by invoke: run in a thread
 
     def _settings(self, context) -> dict:
-        prefs = preferences.addon_preferences(context)
+        prefs = addon_preferences(context)
         if prefs is None:
             return {"build": "CPU", "torch_source": "AUTO", "torch_index_url": "", "base_python": ""}
         return {"build": prefs.worker_build, "torch_source": prefs.torch_source,
@@ -440,7 +441,7 @@ class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
         if job.done != "ok":
             self.report({"ERROR"}, f"Set Up Worker: {job.error}")
             return {"CANCELLED"}
-        prefs = preferences.addon_preferences(context)
+        prefs = addon_preferences(context)
         if worker_client._client is not None and not job.reused:
             worker_client.shutdown()  # it ran the environment that was just replaced
         if prefs is not None:
@@ -531,7 +532,7 @@ def draw_setup(layout, context) -> None:
             box.label(text=line[:120])
         box.operator(NERFDEFORM_OT_cancel_worker_setup.bl_idname, icon="CANCEL")
         return
-    prefs = preferences.addon_preferences(context)
+    prefs = addon_preferences(context)
     row = box.row()
     row.prop(prefs, "worker_build", expand=True)
     box.prop(prefs, "torch_source")

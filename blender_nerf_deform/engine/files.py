@@ -1,4 +1,4 @@
-"""Writing files so that nothing the user made is ever half-written (DESIGN.md, conventions).
+"""Writing files so that nothing the user made is ever half-written (docs/ARCHITECTURE.md, Conventions).
 
 - `atomic_write`: a temporary file beside the target, flushed, then renamed over it; a full
   disk or a read-only folder is one EngineError naming the file, and Ctrl-C waits until the

@@ -1,4 +1,4 @@
-"""Ray bending: render a NeRF through a deformed cage (DESIGN.md: "bend + render").
+"""Ray bending: render a NeRF through a deformed cage (docs/ARCHITECTURE.md: "bend + render").
 
 Every ray sample in deformed space is decided on its own (not per grid cell):
 

@@ -1,6 +1,6 @@
 """`python -m blender_nerf_deform.engine <command>`: the engine's command line.
 
-A public interface (DESIGN.md): scripts, render farms and the project's own
+A public interface (docs/ARCHITECTURE.md): scripts, render farms and the project's own
 benchmarks call it, so the commands and options below stay stable. One module
 per command (cli/<command>.py) turns the parsed options into calls of the
 stage functions, the same ones the worker serves; it is imported only when its

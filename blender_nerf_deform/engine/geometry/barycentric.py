@@ -1,6 +1,6 @@
 """Barycentric maps of a tetrahedral cage, vectorised over all tets (pure numpy).
 
-The barycentric matrix of a tet with vertices a, b, c, d is (DESIGN.md, eq. 1)
+The barycentric matrix of a tet with vertices a, b, c, d is (docs/ARCHITECTURE.md, Conventions)
 
     T = | a b c d |      λ = T⁻¹ [p; 1],   p = T λ (first three rows)
         | 1 1 1 1 |

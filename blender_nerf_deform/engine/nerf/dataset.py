@@ -56,7 +56,7 @@ regions live), the same as `aabb` unless said below. In this order:
    mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), grown to hold the box of
    rule 4 taken with the wider field of view (what the cameras frame; the fox's head lies
    outside the unit cube) within the scene cube, `aabb` the scene cube;
-3. NeRF-synthetic form (`camera_angle_x`): [-1.5, 1.5]^3, as DESIGN.md states;
+3. NeRF-synthetic form (`camera_angle_x`): [-1.5, 1.5]^3, as docs/ARCHITECTURE.md's Conventions state;
 4. otherwise derived from the cameras: centred on the point closest (least
    squares) to all optical axes, half-width = mean camera distance to that
    point x tan(half the narrower field of view): the largest centred object

@@ -1,7 +1,7 @@
 """The worker session: what Blender gave this worker, kept under content keys, and what is built from it.
 
 Blender sends a rest cage, a surface embedding or a set of handle regions once
-(DESIGN.md, "The worker session"); later requests name them by key. Each slot
+(docs/ARCHITECTURE.md, "The worker session"); later requests name them by key. Each slot
 keeps its few newest entries (a scene with several NeRFs, or an edit going back
 and forth, reuses them); what is derived from them (the cage's ray bender, the
 ARAP factorization of a set of regions) is cached by the same keys, so a frame

@@ -28,7 +28,7 @@ carries the arrays of a slot ("<slot>.<name>") only the first time. A key the
 worker does not hold (a new worker, or one it dropped) fails the request with
 kind "missing" and the slots to send; the client sends them and retries.
 
-Why a process and not a thread in Blender: DESIGN.md ("Two halves").
+Why a process and not a thread in Blender: docs/ARCHITECTURE.md ("Why heavy work runs in a separate process").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""COLMAP's cameras and image poses in this project's conventions (DESIGN.md: Blender/OpenGL).
+"""COLMAP's cameras and image poses in this project's conventions (docs/ARCHITECTURE.md, Conventions: Blender/OpenGL).
 
 COLMAP stores, per image, `cam_from_world` (world-to-camera, OpenCV axes: x right, y down,
 z forward) and, per camera, a model with its parameters. Here each image becomes a
