@@ -52,7 +52,6 @@ def running_checkpoints() -> list[str]:
 def panel_checkpoints(context) -> list[str]:
     """Where the Train panel's runs write their checkpoints: its run folder (or its dataset's default),
     and its photos' default (Import Photos)."""
-
     t = context.scene.nerf_deform_training
     found = []
     if t.run_folder:
