@@ -31,21 +31,11 @@ ADDON_SAFE = set(sys.stdlib_module_names) | {"numpy"}
 # Libraries that do a stage's work: the command line and the worker call stages instead.
 STAGE_LIBRARIES = TORCH_MODULES | {"numba", "llvmlite", "scipy", "skimage", "trimesh", "igl", "pytetwild", "PIL"}
 PLUMBING = ("cli", "service")
-# The add-on's layers, bottom up (docs/ARCHITECTURE.md, "The add-on in layers"): a module imports only
-# from its own layer or lower ones, also inside functions. The modules still sit in one folder (moving
-# them into sub-packages by layer is pending), so this table says where each belongs; a new module
-# must be placed here. addon/__init__.py registers them all and is above every layer.
-ADDON_LAYERS = (
-    ("data", ("properties", "cage_store", "camera", "paths", "images", "depth_compositing")),
-    ("worker", ("worker_client", "jobs", "worker_setup")),
-    ("capture", ("capture_ops", "dataset_capture", "capture_runner")),
-    ("train", ("train_ops", "training_preview", "photos_ops")),
-    ("edit", ("nerf_ops", "region_ops", "pick_ops", "extract_ops", "cage_ops")),
-    ("deform", ("handles", "deformation", "preview")),
-    ("render", ("frame_render", "render_engine", "viewport", "preview_render", "composite")),
-    ("ui", ("panel", "scene_panel", "preferences")),
-    ("api", ("api",)),
-)
+# The add-on's layers, bottom up: one sub-package of addon/ each (docs/ARCHITECTURE.md, "The add-on
+# in layers"). A module imports only from its own layer or lower ones, also inside functions; api.py
+# (the scripting API) sits on top, addon/__init__.py (registration) above everything.
+ADDON_LAYERS = ("data", "worker", "capture", "train", "edit", "deform", "render", "ui")
+ADDON_TOP = ("api",)
 
 
 def _module_name(package_root: Path, path: Path) -> str:
@@ -128,9 +118,20 @@ def import_cycle(graph: dict, prefix: str) -> list[str] | None:
     return None
 
 
+def _addon_layer(module: str, addon: str, addon_layers) -> tuple[int, str] | None:
+    """(rank, name) of the layer an add-on module belongs to, by its path: addon/<layer>/..., api.py
+    on top; None for a module outside every layer."""
+    parts = module[len(addon) + 1:].split(".")
+    if parts[0] in addon_layers:
+        return addon_layers.index(parts[0]), parts[0]
+    if len(parts) == 1 and parts[0] in ADDON_TOP:
+        return len(addon_layers), parts[0]
+    return None
+
+
 def violations(package_root: Path, addon_layers=ADDON_LAYERS) -> list[str]:
-    """Every breach of the rules above, one line each. `addon_layers` None: no layer order (a package
-    whose add-on modules are not the project's, as in the checker's own tests)."""
+    """Every breach of the rules above, one line each. `addon_layers` None: no layer order (a made-up
+    package whose add-on modules are not laid out in layers, as in the checker's own tests)."""
     pkg = package_root.name
     graph = import_graph(package_root)
     problems = []
@@ -161,18 +162,20 @@ def violations(package_root: Path, addon_layers=ADDON_LAYERS) -> list[str]:
     cycle = import_cycle(graph, addon)
     if cycle:
         problems.append(f"{graph[cycle[0]][0]}: import cycle in addon/: {' -> '.join(cycle)}")
-    rank = {f"{addon}.{m}": (i, layer) for i, (layer, modules) in enumerate(addon_layers or ()) for m in modules}
     for module, (path, imports) in graph.items():
-        if addon_layers is None or not module.startswith(addon + ".") or module.endswith("__init__"):
+        if addon_layers is None or not module.startswith(addon + "."):
             continue
-        if module not in rank:
-            problems.append(f"{path}: {module} has no layer: place it in ADDON_LAYERS (tools/check_layering.py)")
+        here = _addon_layer(module, addon, addon_layers)
+        if here is None:
+            problems.append(f"{path}: {module} is in no layer: put it in one of addon/{{{','.join(addon_layers)}}}/ "
+                            "(tools/check_layering.py, ADDON_LAYERS)")
             continue
         for line, name in imports:
-            target = next((t for t in _with_parents(name, pkg) if t in rank), None)
-            if target is not None and rank[target][0] > rank[module][0] and (path, line) not in reported:
+            target = next((t for t in _with_parents(name, pkg) if t.startswith(addon + ".")), None)
+            there = _addon_layer(target, addon, addon_layers) if target else None
+            if there is not None and there[0] > here[0] and (path, line) not in reported:
                 reported.add((path, line))
-                problems.append(f"{path}:{line}: {module} ({rank[module][1]}) imports {target} ({rank[target][1]}): "
+                problems.append(f"{path}:{line}: {module} ({here[1]}) imports {target} ({there[1]}): "
                                 "imports run from higher layers to lower ones only")
 
     # A module Blender's Python lacks, reachable from addon/ through any chain of engine modules.

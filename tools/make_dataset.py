@@ -32,7 +32,7 @@ of a second and is deterministic for a given --seed.
 What is written (DIR/transforms.json, DIR/images/, and with --test-count N > 0 DIR/test/ for
 `engine eval --data DIR/test`), its keys and its camera convention (Blender's own camera-to-world
 matrices; pixel centres; fl_x/fl_y/cx/cy exact with --shift and --pixel-aspect): the docstring of
-`blender_nerf_deform/addon/dataset_capture.py`, which writes it.
+`blender_nerf_deform/addon/capture/dataset.py`, which writes it.
 
 With --engine KEEP the .blend's own render engine and sampling settings render the views
 (only resolution, film transparency, output format and colour view are set, and the compositor,
@@ -45,7 +45,7 @@ the paths it wrote. It loads the .blend into this process's Blender (the
 removed again, and the render settings it changes are restored).
 
 This file is the command line only: the capture itself lives in the add-on,
-`blender_nerf_deform/addon/dataset_capture.py`, which the add-on's Capture Dataset
+`blender_nerf_deform/addon/capture/dataset.py`, which the add-on's Capture Dataset
 operator runs too (one code for both); its public names are re-exported here.
 """
 
@@ -58,7 +58,7 @@ from pathlib import Path
 # The capture core is the add-on's, in the package at the repository root.
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from blender_nerf_deform.addon.dataset_capture import (  # noqa: E402,F401  (re-exported: tools import them from here)
+from blender_nerf_deform.addon.capture.dataset import (  # noqa: E402,F401  (re-exported: tools import them from here)
     BUILTIN_ENGINES, CAMERA_NAME, ENGINES, GOLDEN_ANGLE, RENDERABLE_TYPES, SENSOR_FITS, DatasetError, Options,
     camera_positions, intrinsics, make_dataset, project, renderable, selection_frame, write_json_atomic)
 

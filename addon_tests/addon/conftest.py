@@ -40,7 +40,7 @@ def addon(blender, module_worker):
     """The add-on registered by direct import, in factory settings; unregistered after (the worker is
     kept for the module's next test: module_worker)."""
     import blender_nerf_deform
-    from blender_nerf_deform.addon import worker_client
+    from blender_nerf_deform.addon.worker import client as worker_client
 
     blender_nerf_deform.register()
     worker_client.adopt_client(module_worker["client"])

@@ -5,7 +5,7 @@ The add-on side is what a user does: Load NeRF, Build Cage, Pin Selection, Add H
 the handle, `bpy.ops.render.render(animation=True)`. The command-line side gets, per frame, the cage
 pose the add-on's own path computes for that frame (deformation.deformed_cage after
 frame_set: the worker's solve, as a render runs it), the rest cage as CAGE.npz, and the camera as transforms.json written from the add-on's
-camera model (addon/camera.py), and runs `python -m blender_nerf_deform.engine render --cage
+camera model (addon/data/camera.py), and runs `python -m blender_nerf_deform.engine render --cage
 --deformed`. The poses are also checked against the keyframes themselves, so a render that ignored
 the frame's handle pose (or the handles altogether) could not pass.
 """
@@ -19,9 +19,9 @@ import pytest
 from PIL import Image
 
 from fixtures import REPO
-from test_arap_handles import _nerf_with_built_cage
+from fixtures.blender_objects import nerf_with_built_cage
 from fixtures import psnr as _psnr
-from test_handles import _select_in_edit_mode
+from fixtures.blender_objects import select_in_edit_mode
 
 SIZE = 48
 FRAMES = (1, 2, 3)
@@ -43,25 +43,25 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
     bpy = addon
     from mathutils import Matrix
 
-    from blender_nerf_deform.addon.camera import pinhole_from_blender
-    from blender_nerf_deform.addon.cage_store import load_embedding
-    from blender_nerf_deform.addon import jobs
-    from blender_nerf_deform.addon.cage_store import load_cage
-    from blender_nerf_deform.addon.deformation import deformed_cage
+    from blender_nerf_deform.addon.data.camera import pinhole_from_blender
+    from blender_nerf_deform.addon.data.cage_store import load_embedding
+    from blender_nerf_deform.addon.worker import jobs
+    from blender_nerf_deform.addon.data.cage_store import load_cage
+    from blender_nerf_deform.addon.deform.poses import deformed_cage
     from blender_nerf_deform.engine.geometry.mesh_io import save_cage
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    nerf, surface, rest_surface = _nerf_with_built_cage(bpy, ckpt)
+    nerf, surface, rest_surface = nerf_with_built_cage(bpy, ckpt)
     # The NeRF placed away from the origin: poses and the camera must both go to its frame.
     nerf.matrix_world = Matrix.Translation((0.5, -0.25, 0.2))
     bpy.context.view_layer.update()
     nerf.nerf_deform.deformation_mode = "ARAP"
     z = rest_surface[:, 2]  # quarters of the mesh's own height: the fixture's mesh varies per session
     top, bottom = np.flatnonzero(z > z.min() + 0.75 * np.ptp(z)), np.flatnonzero(z < z.min() + 0.25 * np.ptp(z))
-    _select_in_edit_mode(bpy, surface, bottom)
+    select_in_edit_mode(bpy, surface, bottom)
     assert bpy.ops.nerf_deform.pin_selection() == {"FINISHED"}
-    _select_in_edit_mode(bpy, surface, top)
+    select_in_edit_mode(bpy, surface, top)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     handle = bpy.context.active_object
     centroid = np.array(handle.location)  # local to the NeRF: the NeRF's frame
@@ -85,7 +85,7 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
     scene.render.filepath = str(tmp_path / "blender" / "frame_")
     # The render solves each frame itself; the viewport preview asks the worker nothing meanwhile
     # (its requests would queue ahead of the render's on the one worker).
-    from blender_nerf_deform.addon import deformation
+    from blender_nerf_deform.addon.deform import poses as deformation
 
     events = []
     original_request = deformation.AsyncSolver.request

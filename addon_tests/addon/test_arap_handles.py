@@ -5,22 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from test_handles import _select_in_edit_mode
-
-
-def _nerf_with_built_cage(bpy, ckpt):
-    assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
-    nerf = bpy.context.active_object
-    bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=0.7)
-    surface = bpy.context.active_object
-    surface.nerf_deform.role = "SURFACE"
-    surface.parent = nerf
-    nerf.nerf_deform.surface = surface
-    bpy.context.view_layer.objects.active = nerf
-    assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
-    co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
-    surface.data.vertices.foreach_get("co", co)
-    return nerf, surface, co.reshape(-1, 3)
+from fixtures.blender_objects import nerf_with_built_cage, select_in_edit_mode
 
 
 def _preview(surface):
@@ -34,7 +19,7 @@ def _preview(surface):
 
 def _pump_until(condition, seconds=60):
     """Run what Blender's timer runs on the main thread (the worker's answers) until `condition`."""
-    from blender_nerf_deform.addon import worker_client
+    from blender_nerf_deform.addon.worker import client as worker_client
 
     deadline = time.monotonic() + seconds
     while not condition() and time.monotonic() < deadline:
@@ -47,19 +32,19 @@ def _pump_until(condition, seconds=60):
 def test_arap_preview_follows_a_moved_handle_and_keeps_the_pin(addon, sphere_nerf):
     bpy = addon
     ckpt, _ = sphere_nerf
-    nerf, surface, rest = _nerf_with_built_cage(bpy, ckpt)
+    nerf, surface, rest = nerf_with_built_cage(bpy, ckpt)
     z = rest[:, 2]  # quarters of the mesh's own height: the fixture's mesh varies per session
     top, bottom = np.flatnonzero(z > z.min() + 0.75 * np.ptp(z)), np.flatnonzero(z < z.min() + 0.25 * np.ptp(z))
-    _select_in_edit_mode(bpy, surface, bottom)
+    select_in_edit_mode(bpy, surface, bottom)
     assert bpy.ops.nerf_deform.pin_selection() == {"FINISHED"}
-    _select_in_edit_mode(bpy, surface, top)
+    select_in_edit_mode(bpy, surface, top)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     handle = bpy.context.active_object
 
     handle.location.z += 0.3
     bpy.context.view_layer.update()
 
-    from blender_nerf_deform.addon import preview
+    from blender_nerf_deform.addon.deform import live_preview as preview
 
     solver = preview._solvers[nerf.name]
     assert _pump_until(lambda: not solver.in_flight and solver.waiting is None)

@@ -110,7 +110,7 @@ def test_moved_checkpoint_is_named_by_render_and_extract_and_both_work_once_it_i
 
 def _nerf_in_a_box_cage(bpy, ckpt):
     """A NeRF whose cage (Cage Modifiers mode) is a box around its whole scene box."""
-    from blender_nerf_deform.addon.cage_store import store_cage
+    from blender_nerf_deform.addon.data.cage_store import store_cage
     from blender_nerf_deform.engine.geometry.cage import box_cage
 
     assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
@@ -161,7 +161,7 @@ def test_render_whose_worker_job_is_cancelled_midway_reports_it_and_the_next_ren
     headless, so the job is cancelled through the worker client, as test_break's cancel does. A
     cancel Blender did not ask for must not pass an empty frame off as a render."""
     bpy = addon
-    from blender_nerf_deform.addon import jobs
+    from blender_nerf_deform.addon.worker import jobs
 
     ckpt, _ = sphere_nerf
     assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}

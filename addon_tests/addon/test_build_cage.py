@@ -3,29 +3,16 @@
 import numpy as np
 import pytest
 
-
-def _nerf(bpy, with_surface=True):
-    nerf = bpy.data.objects.new("NeRF", None)
-    nerf.nerf_deform.role = "NERF"
-    bpy.context.scene.collection.objects.link(nerf)
-    surface = None
-    if with_surface:
-        bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=0.6, location=(0.1, 0, 0.2))
-        surface = bpy.context.active_object
-        surface.nerf_deform.role = "SURFACE"
-        surface.parent = nerf
-        nerf.nerf_deform.surface = surface
-    bpy.context.view_layer.objects.active = nerf
-    return nerf, surface
+from fixtures.blender_objects import nerf_with_sphere_surface
 
 
 @pytest.mark.slow
 def test_build_cage_stores_a_cage_that_embeds_the_surface(addon):
     bpy = addon
-    from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+    from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
     from blender_nerf_deform.engine.geometry.barycentric import signed_volumes
 
-    nerf, surface = _nerf(bpy)
+    nerf, surface = nerf_with_sphere_surface(bpy)
     assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
     cage = nerf.nerf_deform.cage
     assert cage is not None and cage.parent == nerf and cage.nerf_deform.role == "CAGE" and cage.hide_render
@@ -48,10 +35,10 @@ def test_refine_selected_makes_the_cage_finer_around_the_selection_only(addon):
     the same tets elsewhere, and the surface still embedded exactly; with nothing selected, a
     report that says what to do, and the cage already built is kept."""
     bpy = addon
-    from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+    from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
     from blender_nerf_deform.engine.geometry.barycentric import signed_volumes
 
-    nerf, surface = _nerf(bpy)
+    nerf, surface = nerf_with_sphere_surface(bpy)
     co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
     surface.data.vertices.foreach_get("co", co)
     co = co.reshape(-1, 3)
@@ -80,7 +67,7 @@ def test_refine_selected_makes_the_cage_finer_around_the_selection_only(addon):
 
 def test_build_cage_before_extract_mesh_says_what_to_do(addon):
     bpy = addon
-    nerf, _ = _nerf(bpy, with_surface=False)
+    nerf, _ = nerf_with_sphere_surface(bpy, with_surface=False)
     with pytest.raises(RuntimeError, match="NeRF has no extracted mesh yet: run Extract Mesh first"):
         bpy.ops.nerf_deform.build_cage()
     assert nerf.nerf_deform.cage is None and len(bpy.data.objects) == 1
@@ -97,7 +84,7 @@ def test_building_a_cage_writes_nothing_into_the_working_directory(tmp_path, mon
 
 _BUILD_TWICE = """
 ckpt, blend = {ckpt!r}, {blend!r}
-from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
 
 assert bpy.ops.nerf_deform.load_nerf(filepath=ckpt) == {{"FINISHED"}}
 nerf = bpy.context.active_object
@@ -132,7 +119,7 @@ print("CAGE VERTICES", counts)
 """
 
 _REOPEN_AND_RENDER = """
-from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
 
 bpy.ops.wm.open_mainfile(filepath={blend!r})
 (nerf,) = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]

@@ -13,24 +13,8 @@ CUBE = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dty
 CUBE_TETS = np.array([[0, 1, 2, 4], [3, 2, 1, 7], [5, 1, 7, 4], [6, 2, 4, 7], [1, 2, 4, 7]])
 
 
-def _enclosed_volume(vertices, faces):
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
-
-
-def test_boundary_of_a_tetrahedralized_cube_is_its_12_outward_triangles():
-    from blender_nerf_deform.engine.geometry.barycentric import boundary_faces
-
-    faces = boundary_faces(CUBE_TETS, CUBE)
-    assert len(faces) == 12
-    assert _enclosed_volume(CUBE, faces) == pytest.approx(1.0)  # outward winding gives +volume
-    # No interior face: every boundary triangle lies on a face of the cube.
-    on_face = [(np.ptp(CUBE[f], axis=0) == 0).any() for f in faces]
-    assert all(on_face)
-
-
 def _make_cage(bpy, rng):
-    from blender_nerf_deform.addon.cage_store import store_cage
+    from blender_nerf_deform.addon.data.cage_store import store_cage
 
     vertices = CUBE * 2.0 - 1.0 + rng.normal(0, 1e-9, CUBE.shape)  # float64 detail float32 would lose
     mesh = bpy.data.meshes.new("Cage")
@@ -43,7 +27,7 @@ def _make_cage(bpy, rng):
 _READ_BACK = """
 import sys, numpy as np, bpy
 sys.path.insert(0, {repo!r})
-from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
 bpy.ops.wm.open_mainfile(filepath={path!r})
 rest, tets = load_cage(bpy.data.meshes["Cage"])
 tet_ids, weights = load_embedding(bpy.data.meshes["Surface"])
@@ -53,7 +37,7 @@ np.savez({out!r}, rest=rest, tets=tets, tet_ids=tet_ids, weights=weights)
 
 def test_cage_and_embedding_round_trip_through_a_saved_blend_in_a_fresh_process(blender, tmp_path):
     bpy = blender
-    from blender_nerf_deform.addon.cage_store import store_embedding
+    from blender_nerf_deform.addon.data.cage_store import store_embedding
 
     rng = np.random.default_rng(0)
     _, vertices = _make_cage(bpy, rng)
@@ -81,7 +65,7 @@ def test_cage_edited_in_edit_mode_is_refused(blender):
     bpy = blender
     import bmesh
 
-    from blender_nerf_deform.addon.cage_store import CageDataError, load_cage
+    from blender_nerf_deform.addon.data.cage_store import CageDataError, load_cage
 
     obj, _ = _make_cage(bpy, np.random.default_rng(1))
     bm = bmesh.new()
@@ -96,7 +80,7 @@ def test_cage_edited_in_edit_mode_is_refused(blender):
 
 def test_modifiers_on_the_cage_object_drive_its_vertices(blender):
     bpy = blender
-    from blender_nerf_deform.addon.cage_store import CageDataError, evaluated_cage_vertices
+    from blender_nerf_deform.addon.data.cage_store import CageDataError, evaluated_cage_vertices
 
     obj, vertices = _make_cage(bpy, np.random.default_rng(2))
     mod = obj.modifiers.new("Twist", "SIMPLE_DEFORM")
@@ -112,7 +96,7 @@ def test_modifiers_on_the_cage_object_drive_its_vertices(blender):
 
 def test_embedding_of_a_changed_mesh_is_refused(blender):
     bpy = blender
-    from blender_nerf_deform.addon.cage_store import CageDataError, load_embedding, store_embedding
+    from blender_nerf_deform.addon.data.cage_store import CageDataError, load_embedding, store_embedding
 
     mesh = bpy.data.meshes.new("Surface")
     mesh.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [])
@@ -128,7 +112,7 @@ def test_loaded_cage_and_embedding_are_copies_not_views_of_the_id_properties(ble
     """A numpy view of an ID property reads freed memory once Blender frees it (undo, Build Cage
     again, quitting; Blender then also reports 'Not freed memory blocks' at exit). Loads copy."""
     bpy = blender
-    from blender_nerf_deform.addon.cage_store import EMBED_WEIGHTS_KEY, REST_KEY, load_cage, load_embedding, store_embedding
+    from blender_nerf_deform.addon.data.cage_store import EMBED_WEIGHTS_KEY, REST_KEY, load_cage, load_embedding, store_embedding
 
     obj, vertices = _make_cage(bpy, np.random.default_rng(1))
     rest, _tets = load_cage(obj.data)

@@ -20,7 +20,7 @@ def test_projection_matches_blender(blender, resolution, percent, aspect, lens, 
     from bpy_extras.object_utils import world_to_camera_view
     from mathutils import Euler, Vector
 
-    from blender_nerf_deform.addon.camera import pinhole_from_blender
+    from blender_nerf_deform.addon.data.camera import pinhole_from_blender
 
     scene = bpy.context.scene
     scene.render.resolution_x, scene.render.resolution_y = resolution
@@ -54,7 +54,7 @@ def test_projection_matches_blender(blender, resolution, percent, aspect, lens, 
 
 def test_orthographic_camera_is_refused_with_a_clear_message(blender):
     bpy = blender
-    from blender_nerf_deform.addon.camera import CameraError, pinhole_from_blender
+    from blender_nerf_deform.addon.data.camera import CameraError, pinhole_from_blender
 
     data = bpy.data.cameras.new("ortho")
     data.type = "ORTHO"

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from blender_nerf_deform.addon.dataset_capture import project
+from blender_nerf_deform.addon.capture.dataset import project
 
 DECOY_LOCATION = (0.0, 0.0, -2.2)
 
@@ -218,7 +218,7 @@ def _snapshot(folder: Path) -> dict:
 
 
 def _running_job(bpy, out: Path, count: int, at_least: int = 2):
-    from blender_nerf_deform.addon import capture_ops
+    from blender_nerf_deform.addon.capture import operators as capture_ops
 
     settings = bpy.context.scene.nerf_deform_capture
     settings.output, settings.count, settings.resolution = str(out), count, (48, 48)
@@ -247,7 +247,7 @@ def test_cancel_midway_leaves_the_existing_dataset_as_it_was(scene, tmp_path):
 
 def test_a_second_capture_into_the_same_folder_is_refused_while_one_runs(scene, tmp_path):
     bpy, *_ = scene
-    from blender_nerf_deform.addon import capture_ops
+    from blender_nerf_deform.addon.capture import operators as capture_ops
 
     out = tmp_path / "data"
     before = _old_dataset(out)
@@ -286,7 +286,7 @@ def test_a_renderer_that_dies_is_a_failure_that_changes_nothing(scene, tmp_path)
 
 def test_background_run_to_the_end_replaces_the_old_dataset(scene, tmp_path):
     bpy, *_ = scene
-    from blender_nerf_deform.addon import capture_ops
+    from blender_nerf_deform.addon.capture import operators as capture_ops
 
     out = tmp_path / "data"
     _old_dataset(out)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from fixtures import REPO
-from test_render_engine import _scene_with_nerf
+from fixtures.blender_objects import scene_with_nerf
 
 SIZE = 64
 
@@ -69,11 +69,11 @@ def test_a_cube_half_in_front_of_the_nerf_is_merged_by_depth(addon, sphere_nerf,
     bpy = addon
     from mathutils import Euler, Matrix
 
-    from blender_nerf_deform.addon.composite import mesh_scene_of
+    from blender_nerf_deform.addon.render.composite import mesh_scene_of
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    _nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][3], meta["camera_angle_x"], SIZE)
+    _nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][3], meta["camera_angle_x"], SIZE)
     scene = bpy.context.scene
     # A box (1.8 x 0.6 x 1) turned 34 degrees about the view's up axis, centred 3.1 units in front
     # of the camera (the sphere's centre is at 3): its front edge pokes out of the sphere, its sides
@@ -172,8 +172,8 @@ def test_the_nerf_depth_pass_is_cycles_depth_of_the_same_surface(addon, sphere_n
     bpy = addon
     from mathutils import Euler, Matrix
 
-    from blender_nerf_deform.addon.camera import pinhole_from_blender
-    from blender_nerf_deform.addon.composite import mesh_scene_of
+    from blender_nerf_deform.addon.data.camera import pinhole_from_blender
+    from blender_nerf_deform.addon.render.composite import mesh_scene_of
     from fixtures.sphere_data import RADIUS
 
     ckpt, data = sphere_nerf
@@ -182,7 +182,7 @@ def test_the_nerf_depth_pass_is_cycles_depth_of_the_same_surface(addon, sphere_n
     # world units are 1.5x the NeRF's own.
     scale = 1.5
     placement = Matrix.LocRotScale((1.0, 2.0, 0.5), Euler((0.2, -0.3, 0.9)), (scale, scale, scale))
-    nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][7], meta["camera_angle_x"], SIZE, placement)
+    nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][7], meta["camera_angle_x"], SIZE, placement)
     camera.matrix_world = camera.matrix_world @ Matrix.Scale(1 / scale, 4)  # a unit-scale camera
     scene = bpy.context.scene
     center, radius = (1.0, 2.0, 0.5), RADIUS * scale
@@ -224,7 +224,7 @@ def test_the_nerf_depth_pass_is_cycles_depth_of_the_same_surface(addon, sphere_n
 
 def test_composite_with_scene_again_rebuilds_its_own_setup_and_keeps_the_artists(addon):
     bpy = addon
-    from blender_nerf_deform.addon.composite import TREE_NAME, mesh_scene_of
+    from blender_nerf_deform.addon.render.composite import TREE_NAME, mesh_scene_of
 
     scene = bpy.context.scene
     nerf = bpy.data.objects.new("NeRF", None)
@@ -259,7 +259,7 @@ def test_composite_with_scene_again_rebuilds_its_own_setup_and_keeps_the_artists
     assert {n.scene for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers"} == {scene, mesh_scene}
 
     # Run on the meshes scene by mistake: told where to run it.
-    from blender_nerf_deform.addon.composite import composite_with_scene
+    from blender_nerf_deform.addon.render.composite import composite_with_scene
 
     with pytest.raises(ValueError, match="is the meshes scene of 'Scene': run Composite With Scene in 'Scene'"):
         composite_with_scene(mesh_scene)

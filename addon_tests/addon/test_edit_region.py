@@ -10,12 +10,12 @@ import re
 import numpy as np
 import pytest
 
-from test_handles import _select_in_edit_mode
+from fixtures.blender_objects import select_in_edit_mode
 
 BOX = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
 
 
-def _nerf(bpy, ckpt=None):
+def nerf_with_sphere_surface(bpy, ckpt=None):
     """A NeRF object: loaded from `ckpt`, or (no worker) made as Load NeRF makes it."""
     if ckpt is not None:
         assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
@@ -56,10 +56,10 @@ def test_add_edit_region_makes_a_box_empty_whose_region_follows_its_transform(ad
     bpy = addon
     from mathutils import Matrix, Vector
 
-    from blender_nerf_deform.addon.region_ops import edit_region_of
+    from blender_nerf_deform.addon.edit.regions import edit_region_of
     from blender_nerf_deform.engine.geometry.region import region_from_dict
 
-    nerf = _nerf(bpy)
+    nerf = nerf_with_sphere_surface(bpy)
     # The NeRF placed, turned and scaled in the scene: the region is in the NeRF's own frame.
     nerf.matrix_world = Matrix.Translation((0.5, -0.25, 0.2)) @ Matrix.Rotation(0.5, 4, "Z") @ Matrix.Scale(2.0, 4)
     bpy.context.view_layer.update()
@@ -90,7 +90,7 @@ def test_add_edit_region_makes_a_box_empty_whose_region_follows_its_transform(ad
 
     # A second Add Edit Region adds a second region (one object, and one cage, each), around the
     # cursor; the NeRF's `edit_region` is the one added last.
-    from blender_nerf_deform.addon.region_ops import regions_of
+    from blender_nerf_deform.addon.edit.regions import regions_of
 
     n_objects = len(bpy.data.objects)
     second = _add_region(bpy, nerf)
@@ -100,9 +100,9 @@ def test_add_edit_region_makes_a_box_empty_whose_region_follows_its_transform(ad
 
 def test_a_new_region_with_the_cursor_outside_the_box_covers_the_whole_box(addon):
     bpy = addon
-    from blender_nerf_deform.addon.region_ops import edit_region_of
+    from blender_nerf_deform.addon.edit.regions import edit_region_of
 
-    nerf = _nerf(bpy)
+    nerf = nerf_with_sphere_surface(bpy)
     nerf.nerf_deform.aabb = (-1.0, -2.0, 0.0, 3.0, 2.0, 1.0)
     bpy.context.scene.cursor.location = (5.0, 0.0, 0.0)
     _add_region(bpy, nerf)
@@ -119,7 +119,7 @@ def test_a_new_region_with_the_cursor_outside_the_box_covers_the_whole_box(addon
 
 def test_regions_without_a_box_are_refused_before_anything_is_extracted(addon):
     bpy = addon
-    nerf = _nerf(bpy)  # no checkpoint: the region is checked before the worker is asked anything
+    nerf = nerf_with_sphere_surface(bpy)  # no checkpoint: the region is checked before the worker is asked anything
     region = _add_region(bpy, nerf)
     n_objects = len(bpy.data.objects)
 
@@ -142,7 +142,7 @@ def test_regions_without_a_box_are_refused_before_anything_is_extracted(addon):
     assert nerf.nerf_deform.surface is None
 
     # Mirrored (a negative scale): the same box, taken as it is.
-    from blender_nerf_deform.addon.region_ops import edit_region_of
+    from blender_nerf_deform.addon.edit.regions import edit_region_of
 
     region.parent, region.rotation_euler, region.scale = nerf, (0.0, 0.0, 0.0), (-0.5, 1.0, 1.0)
     bpy.context.view_layer.update()
@@ -151,10 +151,10 @@ def test_regions_without_a_box_are_refused_before_anything_is_extracted(addon):
 
 def test_a_deleted_region_is_forgotten_and_the_region_survives_save_and_reopen(addon, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon.properties import forget_deleted
-    from blender_nerf_deform.addon.region_ops import edit_region_of
+    from blender_nerf_deform.addon.data.properties import forget_deleted
+    from blender_nerf_deform.addon.edit.regions import edit_region_of
 
-    nerf = _nerf(bpy)
+    nerf = nerf_with_sphere_surface(bpy)
     region = _add_region(bpy, nerf)
     _place(bpy, region, (0.2, 0.1, 0.4), (1.0, 0.5, 0.8), (0.1, 0.0, 0.7))
     before = edit_region_of(nerf)
@@ -180,15 +180,15 @@ def test_a_deleted_region_is_forgotten_and_the_region_survives_save_and_reopen(a
 @pytest.mark.slow
 def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(addon, sphere_nerf, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon import jobs
-    from blender_nerf_deform.addon.cage_store import CUT_PIN_GROUP, cage_pins, load_cage, load_embedding
-    from blender_nerf_deform.addon.deformation import deformed_cage
-    from blender_nerf_deform.addon.extract_ops import cut_flags
-    from blender_nerf_deform.addon.handles import group_vertices
-    from blender_nerf_deform.addon.region_ops import edit_region_of, extracted_regions
+    from blender_nerf_deform.addon.worker import jobs
+    from blender_nerf_deform.addon.data.cage_store import CUT_PIN_GROUP, cage_pins, load_cage, load_embedding
+    from blender_nerf_deform.addon.deform.poses import deformed_cage
+    from blender_nerf_deform.addon.data.mesh_attributes import cut_flags
+    from blender_nerf_deform.addon.deform.handles import group_vertices
+    from blender_nerf_deform.addon.edit.regions import edit_region_of, extracted_regions
 
     ckpt, _ = sphere_nerf
-    nerf = _nerf(bpy, ckpt)
+    nerf = nerf_with_sphere_surface(bpy, ckpt)
     region = _add_region(bpy, nerf)
     # The lower half of the sphere (radius 0.8; the briefly trained NeRF is densest there).
     _place(bpy, region, (0.0, 0.0, -0.4), (2.0, 2.0, 0.8))
@@ -216,7 +216,7 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
 
     # A handle on the bottom moved down: ARAP keeps the pinned cage vertices at rest, the cut stays.
     bottom = np.flatnonzero(co[:, 2] < -0.6)
-    _select_in_edit_mode(bpy, surface, bottom)
+    select_in_edit_mode(bpy, surface, bottom)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     handle = bpy.context.active_object
     handle.location.z -= 0.3
@@ -261,11 +261,11 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
 @pytest.mark.slow
 def test_bad_regions_and_picks_get_the_workers_error_and_leave_the_scene_alone(addon, sphere_nerf):
     bpy = addon
-    from blender_nerf_deform.addon.extract_ops import cut_flags
-    from blender_nerf_deform.addon.region_ops import extracted_regions
+    from blender_nerf_deform.addon.data.mesh_attributes import cut_flags
+    from blender_nerf_deform.addon.edit.regions import extracted_regions
 
     ckpt, _ = sphere_nerf
-    nerf = _nerf(bpy, ckpt)
+    nerf = nerf_with_sphere_surface(bpy, ckpt)
     nerf.nerf_deform.resolution = 32
     region = _add_region(bpy, nerf)
     n_objects = len(bpy.data.objects)
@@ -305,10 +305,10 @@ def test_a_single_region_file_still_counts_its_region_and_its_recorded_region(ad
     bpy = addon
     import json
 
-    from blender_nerf_deform.addon.region_ops import (SURFACE_REGION_KEY, edit_regions_of, extracted_regions,
+    from blender_nerf_deform.addon.edit.regions import (SURFACE_REGION_KEY, edit_regions_of, extracted_regions,
                                                       regions_of)
 
-    nerf = _nerf(bpy)
+    nerf = nerf_with_sphere_surface(bpy)
     old = bpy.data.objects.new("Old Region", None)
     old.empty_display_type = "CUBE"
     bpy.context.scene.collection.objects.link(old)
@@ -328,7 +328,7 @@ def test_a_single_region_file_still_counts_its_region_and_its_recorded_region(ad
 
 
 def test_cage_vertex_parts_follow_the_pieces_the_surface_is_embedded_in():
-    from blender_nerf_deform.addon.cage_store import cage_vertex_parts
+    from blender_nerf_deform.addon.data.cage_store import cage_vertex_parts
 
     # Two pieces (vertices 0-4 and 5-9, two tets each) and a stray tet (10-13) holding no surface vertex.
     tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [5, 6, 7, 8], [6, 7, 8, 9], [10, 11, 12, 13]])
@@ -369,14 +369,14 @@ def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon,
     separately: one mesh with two parts, one cage with two pieces, each pinned at its own cut; a
     handle on the left part moves the left piece only, and the frame changes on the left only."""
     bpy = addon
-    from blender_nerf_deform.addon import jobs
-    from blender_nerf_deform.addon.cage_store import cage_pins, load_cage
-    from blender_nerf_deform.addon.deformation import deformed_cage
-    from blender_nerf_deform.addon.extract_ops import cut_flags, part_labels
-    from blender_nerf_deform.addon.region_ops import edit_regions_of, extracted_regions, regions_of, same_regions
+    from blender_nerf_deform.addon.worker import jobs
+    from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage
+    from blender_nerf_deform.addon.deform.poses import deformed_cage
+    from blender_nerf_deform.addon.data.mesh_attributes import cut_flags, part_labels
+    from blender_nerf_deform.addon.edit.regions import edit_regions_of, extracted_regions, regions_of, same_regions
 
     ckpt, _ = sphere_nerf
-    nerf = _nerf(bpy, ckpt)
+    nerf = nerf_with_sphere_surface(bpy, ckpt)
     left = _add_region(bpy, nerf)
     right = _add_region(bpy, nerf)
     assert regions_of(nerf) == [left, right]  # by name: "... Region", "... Region.001"
@@ -421,10 +421,10 @@ def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon,
     assert (np.bincount(cage_part[pins], minlength=2) > 5).all()  # pinned at both cuts
 
     # A handle on the left part's outer side, moved down.
-    from test_handles import _select_in_edit_mode
+    from fixtures.blender_objects import select_in_edit_mode
 
     outer_left = np.flatnonzero((part == 0) & (co[:, 0] < -0.65))
-    _select_in_edit_mode(bpy, surface, outer_left)
+    select_in_edit_mode(bpy, surface, outer_left)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     handle = bpy.context.active_object
 
@@ -467,18 +467,18 @@ def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon,
 
 def test_add_handle_says_when_its_vertices_span_two_regions_objects(addon, capfd):
     bpy = addon
-    from blender_nerf_deform.addon.extract_ops import part_labels, set_part_labels
-    from test_handles import _nerf_with_surface
+    from blender_nerf_deform.addon.data.mesh_attributes import part_labels, set_part_labels
+    from fixtures.blender_objects import nerf_with_grid_surface
 
-    nerf, surface, verts = _nerf_with_surface(bpy)
+    nerf, surface, verts = nerf_with_grid_surface(bpy)
     set_part_labels(surface.data, (verts[:, 0] > 0).astype(np.int32))  # two objects: x <= 0 and x > 0
     assert np.array_equal(part_labels(surface.data), verts[:, 0] > 0)
     with pytest.raises(ValueError, match="3 part labels for a mesh of 125 vertices"):
         set_part_labels(surface.data, np.zeros(3))
 
-    _select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] < -0.4))  # one object's side
+    select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] < -0.4))  # one object's side
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     assert "span the objects" not in capfd.readouterr().out
-    _select_in_edit_mode(bpy, surface, np.flatnonzero((verts[:, 2] > 0.4) & (verts[:, 0] > -0.4)))  # the top of both
+    select_in_edit_mode(bpy, surface, np.flatnonzero((verts[:, 2] > 0.4) & (verts[:, 0] > -0.4)))  # the top of both
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     assert "vertices span the objects of 2 edit regions (parts 1, 2)" in capfd.readouterr().out

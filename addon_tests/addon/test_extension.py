@@ -82,7 +82,7 @@ def test_validator_rejects_a_broken_manifest(tmp_path):
 def test_zip_has_the_extension_layout(extension_zip):
     names = set(zipfile.ZipFile(extension_zip).namelist())
     assert {"blender_manifest.toml", "__init__.py", "addon/__init__.py", "engine/__init__.py",
-            "addon/capture_runner.py", "addon/dataset_capture.py", "docs/ARCHITECTURE.md"} <= names
+            "addon/capture/runner.py", "addon/capture/dataset.py", "docs/ARCHITECTURE.md"} <= names
     assert not any("__pycache__" in name or name.endswith(".pyc") for name in names)
 
 
@@ -104,7 +104,7 @@ def test_installed_extension_enables_as_bl_ext_module(installed):
     assert EXT_MODULE in bpy.context.preferences.addons.keys()
     package = sys.modules[EXT_MODULE]
     assert package.__package__ == EXT_MODULE
-    assert sys.modules[f"{EXT_MODULE}.addon.render_engine"].__package__ == f"{EXT_MODULE}.addon"
+    assert sys.modules[f"{EXT_MODULE}.addon.render.render_engine"].__package__ == f"{EXT_MODULE}.addon.render"
     for name in REGISTERED_TYPES:
         assert hasattr(bpy.types, name), name
     assert _engine_ids(bpy)
@@ -112,7 +112,7 @@ def test_installed_extension_enables_as_bl_ext_module(installed):
     prefs = bpy.context.preferences.addons[EXT_MODULE].preferences
     assert type(prefs).__name__ == "NERFDEFORM_AddonPreferences"
     # The worker works in the extension's user folder, never in the extension's own folder.
-    workdir = Path(sys.modules[f"{EXT_MODULE}.addon.worker_client"].worker_directory())
+    workdir = Path(sys.modules[f"{EXT_MODULE}.addon.worker.client"].worker_directory())
     assert workdir.is_dir() and repo_dir not in workdir.parents
     assert Path(bpy.utils.extension_path_user(EXT_MODULE)) in workdir.parents
     assert prefs.worker_python == ""
@@ -123,7 +123,7 @@ def test_capture_dataset_runs_from_the_installed_extension(installed, tmp_path):
     import json
 
     bpy, repo_dir = installed
-    capture_ops = sys.modules[f"{EXT_MODULE}.addon.capture_ops"]
+    capture_ops = sys.modules[f"{EXT_MODULE}.addon.capture.operators"]
     assert Path(capture_ops.RUNNER).parent == repo_dir / "blender_nerf_deform" / "addon"
     # An unsaved file's datasets go to the extension's user folder.
     assert Path(bpy.utils.extension_path_user(EXT_MODULE)) in Path(capture_ops.default_output_folder("S")).parents
@@ -146,7 +146,7 @@ def test_preview_poll_makes_no_folders(installed, tmp_path):
     bpy.context.scene.nerf_deform_training.photos = str(tmp_path / "some_photos")
     assert not bpy.ops.nerf_deform.preview_training.poll()
     assert not runs.exists()
-    paths = sys.modules[f"{EXT_MODULE}.addon.paths"]
+    paths = sys.modules[f"{EXT_MODULE}.addon.data.paths"]
     assert Path(paths.default_run_folder(str(tmp_path / "some_dataset"))).parent == runs and runs.is_dir()
 
 
@@ -217,7 +217,7 @@ def test_quitting_lets_go_of_the_worker_and_its_callbacks(blender, monkeypatch):
     import weakref
 
     import blender_nerf_deform
-    from blender_nerf_deform.addon import worker_client
+    from blender_nerf_deform.addon.worker import client as worker_client
 
     hooks = []
     monkeypatch.setattr(atexit, "register", hooks.append)

@@ -9,7 +9,7 @@ from fixtures.sphere_data import RADIUS
 @pytest.mark.slow
 def test_extract_mesh_then_build_cage(addon, sphere_nerf):
     bpy = addon
-    from blender_nerf_deform.addon.extract_ops import COLOR_ATTRIBUTE
+    from blender_nerf_deform.addon.edit.extract import COLOR_ATTRIBUTE
 
     ckpt, _ = sphere_nerf
     assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}

@@ -2,41 +2,16 @@
 
 import numpy as np
 import pytest
-
-
-def _nerf_with_surface(bpy, location=(1.0, 2.0, 0.5), scale=2.0):
-    """A NeRF object placed in the scene and a child surface mesh (a 5x5x5-vertex grid box)."""
-    nerf = bpy.data.objects.new("NeRF", None)
-    nerf.nerf_deform.role = "NERF"
-    nerf.location, nerf.scale = location, (scale, scale, scale)
-    bpy.context.scene.collection.objects.link(nerf)
-    axis = np.linspace(-0.5, 0.5, 5)
-    verts = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-    mesh = bpy.data.meshes.new("Surface")
-    mesh.from_pydata(verts.tolist(), [], [])
-    surface = bpy.data.objects.new("Surface", mesh)
-    surface.nerf_deform.role = "SURFACE"
-    surface.parent = nerf
-    bpy.context.scene.collection.objects.link(surface)
-    nerf.nerf_deform.surface = surface
-    return nerf, surface, verts
-
-
-def _select_in_edit_mode(bpy, surface, indices):
-    from tools.demo import _select_vertices  # through bmesh, as the demo selects
-
-    mask = np.zeros(len(surface.data.vertices), dtype=bool)
-    mask[indices] = True
-    _select_vertices(bpy, surface, mask)
+from fixtures.blender_objects import nerf_with_grid_surface, select_in_edit_mode
 
 
 def test_add_handle_makes_an_empty_at_the_centroid_owning_the_region(addon):
     bpy = addon
-    from blender_nerf_deform.addon.handles import group_vertices, handle_target
+    from blender_nerf_deform.addon.deform.handles import group_vertices, handle_target
 
-    nerf, surface, verts = _nerf_with_surface(bpy)
+    nerf, surface, verts = nerf_with_grid_surface(bpy)
     top = np.flatnonzero(verts[:, 2] > 0.4)
-    _select_in_edit_mode(bpy, surface, top)
+    select_in_edit_mode(bpy, surface, top)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
 
     handle = bpy.context.active_object
@@ -57,15 +32,15 @@ def test_add_handle_makes_an_empty_at_the_centroid_owning_the_region(addon):
 def test_a_renamed_handle_keeps_its_region_apart_from_the_next_handle(addon):
     """Renaming a handle frees its default name; the next handle takes that name but its own group."""
     bpy = addon
-    from blender_nerf_deform.addon.handles import group_vertices
+    from blender_nerf_deform.addon.deform.handles import group_vertices
 
-    nerf, surface, verts = _nerf_with_surface(bpy)
+    nerf, surface, verts = nerf_with_grid_surface(bpy)
     top, bottom = np.flatnonzero(verts[:, 2] > 0.4), np.flatnonzero(verts[:, 2] < -0.4)
-    _select_in_edit_mode(bpy, surface, top)
+    select_in_edit_mode(bpy, surface, top)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     first = bpy.context.active_object
     first.name = "Tip"
-    _select_in_edit_mode(bpy, surface, bottom)
+    select_in_edit_mode(bpy, surface, bottom)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     second = bpy.context.active_object
     assert second.nerf_deform.region != first.nerf_deform.region
@@ -75,10 +50,10 @@ def test_a_renamed_handle_keeps_its_region_apart_from_the_next_handle(addon):
 
 def test_handle_parented_to_another_object_follows_it(addon):
     bpy = addon
-    from blender_nerf_deform.addon.handles import handle_target
+    from blender_nerf_deform.addon.deform.handles import handle_target
 
-    nerf, surface, verts = _nerf_with_surface(bpy, location=(0, 0, 0), scale=1.0)
-    _select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] > 0.4))
+    nerf, surface, verts = nerf_with_grid_surface(bpy, location=(0, 0, 0), scale=1.0)
+    select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] > 0.4))
     bpy.ops.nerf_deform.add_handle()
     handle = bpy.context.active_object
     rig = bpy.data.objects.new("Rig", None)
@@ -94,15 +69,15 @@ def test_handle_parented_to_another_object_follows_it(addon):
 
 def test_empty_selection_and_overlaps_are_reported_and_change_nothing(addon):
     bpy = addon
-    nerf, surface, verts = _nerf_with_surface(bpy)
-    _select_in_edit_mode(bpy, surface, [])
+    nerf, surface, verts = nerf_with_grid_surface(bpy)
+    select_in_edit_mode(bpy, surface, [])
     with pytest.raises(RuntimeError, match="No vertices selected"):
         bpy.ops.nerf_deform.add_handle()
     assert len(bpy.data.objects) == 2 and len(surface.vertex_groups) == 0
 
-    _select_in_edit_mode(bpy, surface, [0, 1, 2])
+    select_in_edit_mode(bpy, surface, [0, 1, 2])
     bpy.ops.nerf_deform.add_handle()
-    _select_in_edit_mode(bpy, surface, [2, 3])
+    select_in_edit_mode(bpy, surface, [2, 3])
     with pytest.raises(RuntimeError, match=r"overlaps NeRF Handle \(1 vertices\)"):
         bpy.ops.nerf_deform.add_handle()
     with pytest.raises(RuntimeError, match="cannot be both pinned and moved"):
@@ -112,20 +87,20 @@ def test_empty_selection_and_overlaps_are_reported_and_change_nothing(addon):
 
 def test_pin_remove_and_reset(addon):
     bpy = addon
-    from blender_nerf_deform.addon.handles import group_vertices, handle_target
-    from blender_nerf_deform.addon.properties import PIN_GROUP, handles_of
+    from blender_nerf_deform.addon.deform.handles import group_vertices, handle_target
+    from blender_nerf_deform.addon.data.properties import PIN_GROUP, handles_of
 
-    nerf, surface, verts = _nerf_with_surface(bpy)
+    nerf, surface, verts = nerf_with_grid_surface(bpy)
     bottom = np.flatnonzero(verts[:, 2] < -0.4)
-    _select_in_edit_mode(bpy, surface, bottom)
+    select_in_edit_mode(bpy, surface, bottom)
     assert bpy.ops.nerf_deform.pin_selection() == {"FINISHED"}
     bpy.ops.object.mode_set(mode="OBJECT")
     assert np.array_equal(group_vertices(surface, PIN_GROUP), bottom)
 
-    _select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 2] > 0.4))
+    select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 2] > 0.4))
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     # A right-side region shares the top-right edge with the top handle, and its bottom with the pin.
-    _select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] > 0.4))
+    select_in_edit_mode(bpy, surface, np.flatnonzero(verts[:, 0] > 0.4))
     with pytest.raises(RuntimeError, match="overlaps"):
         bpy.ops.nerf_deform.add_handle()
     handles = handles_of(nerf)
@@ -149,7 +124,7 @@ def test_a_regions_vertices_are_the_meshs_own_after_reused_memory_and_edit_mode_
     (seen in CI: a handle's region from an earlier test's mesh); the cache must follow the mesh
     itself, and an edit of the group in Edit Mode."""
     bpy = addon
-    from blender_nerf_deform.addon.handles import region_vertices
+    from blender_nerf_deform.addon.deform.handles import region_vertices
 
     for round in range(30):
         n = 10 + round

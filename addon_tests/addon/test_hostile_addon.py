@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 
 from fixtures.processes import SCENE_HELPERS, assert_clean, run_blender
-from test_handles import _select_in_edit_mode
+from fixtures.blender_objects import select_in_edit_mode
 
 _SEQUENCE_HELPERS = SCENE_HELPERS + '''
 import json, time
-from blender_nerf_deform.addon import worker_client
-from blender_nerf_deform.addon.preview_render import current_job
+from blender_nerf_deform.addon.worker import client as worker_client
+from blender_nerf_deform.addon.render.preview_render import current_job
 
 outcomes = {}
 
@@ -305,7 +305,7 @@ bpy.ops.ed.undo_push(message="new cage")
 record("undo the build", bpy.ops.ed.undo)
 outcomes["no cage"] = ("ok", first("NERF").nerf_deform.cage is None and first("CAGE") is None)
 record("redo the build", bpy.ops.ed.redo)
-from blender_nerf_deform.addon.cage_store import load_cage, load_embedding
+from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
 load_cage(first("NERF").nerf_deform.cage.data)
 load_embedding(first("SURFACE").data)
 render_frame("render rebuilt", out + "/rebuilt.png")
@@ -408,7 +408,7 @@ def test_a_deleted_cage_is_gone_for_renders_extract_mesh_and_the_saved_file(addo
     assert _psnr(_render(bpy, tmp_path / "reopened.png"), plain) > 50
 
 
-def _nerf_with_surface(bpy):
+def nerf_with_grid_surface(bpy):
     nerf = bpy.data.objects.new("NeRF", None)
     nerf.nerf_deform.role = "NERF"
     bpy.context.scene.collection.objects.link(nerf)
@@ -421,7 +421,7 @@ def _nerf_with_surface(bpy):
 
 
 def _add_handle(bpy, surface, indices):
-    _select_in_edit_mode(bpy, surface, indices)
+    select_in_edit_mode(bpy, surface, indices)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
     return bpy.context.active_object
 
@@ -431,9 +431,9 @@ def test_deleted_handles_surface_and_nerf_are_gone_though_something_holds_them(a
     mesh is no NeRF's mesh (its handles move nothing); a deleted NeRF, kept alive by its handles'
     pointers, owns nothing and is not saved."""
     bpy = addon
-    from blender_nerf_deform.addon.properties import handles_of, owning_nerf
+    from blender_nerf_deform.addon.data.properties import handles_of, owning_nerf
 
-    nerf, surface = _nerf_with_surface(bpy)
+    nerf, surface = nerf_with_grid_surface(bpy)
     co = np.array([v.co[:] for v in surface.data.vertices])
     z = co[:, 2]  # quarters of the mesh's own height: the fixture's mesh varies per session
     kept = _add_handle(bpy, surface, np.flatnonzero(z > z.min() + 0.75 * np.ptp(z)))
@@ -470,10 +470,10 @@ def test_deleted_handles_surface_and_nerf_are_gone_though_something_holds_them(a
 
 def test_a_nerf_scaled_to_zero_is_named_by_the_handles_and_reset_pose(addon):
     bpy = addon
-    from blender_nerf_deform.addon.handles import handle_target
-    from blender_nerf_deform.addon.properties import PlacementError
+    from blender_nerf_deform.addon.deform.handles import handle_target
+    from blender_nerf_deform.addon.data.properties import PlacementError
 
-    nerf, surface = _nerf_with_surface(bpy)
+    nerf, surface = nerf_with_grid_surface(bpy)
     nerf.name = "Lego NeRF"
     co = np.array([v.co[:] for v in surface.data.vertices])
     handle = _add_handle(bpy, surface, np.flatnonzero(co[:, 2] > 0.4))
@@ -499,7 +499,7 @@ def test_a_nerf_scaled_to_zero_is_named_by_the_handles_and_reset_pose(addon):
 def test_a_worker_slow_to_start_is_said_to_be_slow_not_broken(blender, tmp_path, monkeypatch):
     """The start timeout was a fixed 120 s and its message blamed the interpreter ("did not start"),
     while a healthy worker on a busy machine may take longer to import torch."""
-    from blender_nerf_deform.addon.worker_client import START_TIMEOUT_S, WorkerClient, WorkerError
+    from blender_nerf_deform.addon.worker.client import START_TIMEOUT_S, WorkerClient, WorkerError
 
     assert START_TIMEOUT_S >= 300
     slow = tmp_path / "slow_python"

@@ -10,7 +10,7 @@ from PIL import Image
 
 from fixtures.sphere_data import look_at
 
-from test_render_engine import _engine_render, _scene_with_nerf
+from fixtures.blender_objects import engine_render, scene_with_nerf
 
 SMALL = dict(n_levels=4, n_features=2, log2_table_size=12, base_resolution=8, finest_resolution=64,
              density_hidden=16, geo_feat_dim=7, color_hidden=16, occ_resolution=32)
@@ -60,9 +60,9 @@ def test_f12_of_an_unbounded_nerf_matches_the_engine_and_fills_the_frame(addon, 
     frame = {"file_path": "images/v.png", "transform_matrix": look_at((0.4, -2.6, 0.5)).tolist()}
     meta = {"camera_angle_x": 1.0, "w": 24, "h": 24, "frames": [frame]}
     (tmp_path / "one.json").write_text(json.dumps(meta))
-    _engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
+    engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
     expected = np.asarray(Image.open(tmp_path / "cli" / "v.png").convert("RGBA"), dtype=np.int16)
-    _scene_with_nerf(bpy, ckpt, frame, 1.0, 24)
+    scene_with_nerf(bpy, ckpt, frame, 1.0, 24)
     bpy.context.scene.render.filepath = str(tmp_path / "blender.png")
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
     got = np.asarray(Image.open(tmp_path / "blender.png").convert("RGBA"), dtype=np.int16)

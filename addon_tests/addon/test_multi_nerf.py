@@ -15,7 +15,7 @@ import pytest
 
 from fixtures import REPO
 from fixtures.sphere_data import look_at
-from test_render_engine import _render_exr_passes
+from fixtures.blender_objects import render_exr_passes
 
 WIDTH, HEIGHT = 64, 40
 
@@ -46,7 +46,7 @@ def _two_nerfs(bpy, ckpt, first_at, second_at, eye, target=(0.0, 0.0, 0.0)):
 def _render_alone(bpy, nerfs, keep, path):
     for nerf in nerfs:
         nerf.hide_render = nerf is not keep
-    passes = _render_exr_passes(bpy, path)
+    passes = render_exr_passes(bpy, path)
     for nerf in nerfs:
         nerf.hide_render = False
     return passes
@@ -61,7 +61,7 @@ def test_two_nerfs_side_by_side_render_both_as_each_alone(addon, sphere_nerf, tm
     left, right = _two_nerfs(bpy, ckpt, (-1.8, 0.0, 0.0), (1.8, 0.0, 0.0), eye=(0.0, -7.0, 0.0))
     alone_left = _render_alone(bpy, [left, right], left, tmp_path / "left.exr")
     alone_right = _render_alone(bpy, [left, right], right, tmp_path / "right.exr")
-    both = _render_exr_passes(bpy, tmp_path / "both.exr")
+    both = render_exr_passes(bpy, tmp_path / "both.exr")
 
     half = WIDTH // 2
     # Each sphere is in its half of the picture, and nothing of it in the other half.
@@ -80,7 +80,7 @@ def test_two_nerfs_side_by_side_render_both_as_each_alone(addon, sphere_nerf, tm
         users.objects.unlink(right)
     collection.objects.link(right)
     bpy.context.view_layer.layer_collection.children[collection.name].exclude = True
-    excluded = _render_exr_passes(bpy, tmp_path / "excluded.exr")
+    excluded = render_exr_passes(bpy, tmp_path / "excluded.exr")
     assert np.allclose(excluded["Combined"], alone_left["Combined"], rtol=1e-5, atol=1e-5)
 
 
@@ -92,7 +92,7 @@ def test_the_nerf_in_front_occludes_the_one_behind_pixel_by_pixel(addon, sphere_
     near, far = _two_nerfs(bpy, ckpt, (0.0, 0.0, 0.0), (0.9, 2.5, 0.0), eye=(0.0, -4.0, 0.0), target=(0.3, 0.0, 0.0))
     front = _render_alone(bpy, [near, far], near, tmp_path / "near.exr")
     back = _render_alone(bpy, [near, far], far, tmp_path / "far.exr")
-    both = _render_exr_passes(bpy, tmp_path / "both.exr")
+    both = render_exr_passes(bpy, tmp_path / "both.exr")
 
     a_front, a_back = front["Alpha"], back["Alpha"]
     overlap = (a_front > 0.5) & (a_back > 0.5)
@@ -114,14 +114,15 @@ def test_the_nerf_in_front_occludes_the_one_behind_pixel_by_pixel(addon, sphere_
 
     # Swapped names (so the other one comes first in the list): the same picture, the order is by depth.
     near.name, far.name = "B near", "A far"
-    swapped = _render_exr_passes(bpy, tmp_path / "swapped.exr")
+    swapped = render_exr_passes(bpy, tmp_path / "swapped.exr")
     assert np.allclose(swapped["Combined"], both["Combined"], atol=1e-6)
 
 
 @pytest.mark.slow
 def test_progress_spans_every_nerf_and_cancel_stops_between_them(addon, sphere_nerf):
     bpy = addon
-    from blender_nerf_deform.addon import frame_render, jobs
+    from blender_nerf_deform.addon.render import frame as frame_render
+    from blender_nerf_deform.addon.worker import jobs
 
     ckpt, _ = sphere_nerf
     _two_nerfs(bpy, ckpt, (-1.8, 0.0, 0.0), (1.8, 0.0, 0.0), eye=(0.0, -7.0, 0.0))
@@ -149,7 +150,7 @@ def test_a_saved_scene_of_two_nerfs_renders_the_same_in_a_fresh_blender(addon, s
     bpy = addon
     ckpt, _ = sphere_nerf
     _two_nerfs(bpy, ckpt, (0.0, 0.0, 0.0), (0.9, 2.5, 0.0), eye=(0.0, -4.0, 0.0), target=(0.3, 0.0, 0.0))
-    before = _render_exr_passes(bpy, tmp_path / "before.exr")
+    before = render_exr_passes(bpy, tmp_path / "before.exr")
     blend = tmp_path / "two.blend"
     assert bpy.ops.wm.save_as_mainfile(filepath=str(blend)) == {"FINISHED"}
 

@@ -7,7 +7,7 @@ from blender_nerf_deform.engine.geometry.embedding import embed_points
 
 
 def _nerf_with_cage_and_surface(bpy):
-    from blender_nerf_deform.addon.cage_store import store_cage, store_embedding
+    from blender_nerf_deform.addon.data.cage_store import store_cage, store_embedding
 
     scene = bpy.context.scene
     nerf = bpy.data.objects.new("NeRF", None)
@@ -48,7 +48,7 @@ def _preview(surface):
 
 def test_cage_modifier_drives_the_surface_preview_per_frame(addon):
     bpy = addon
-    from blender_nerf_deform.addon.cage_store import evaluated_cage_vertices
+    from blender_nerf_deform.addon.data.cage_store import evaluated_cage_vertices
 
     nerf, cage, surface, embedding, points = _nerf_with_cage_and_surface(bpy)
     twist = cage.modifiers.new("Twist", "SIMPLE_DEFORM")

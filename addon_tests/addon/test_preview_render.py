@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from test_render_engine import _engine_render, _scene_with_nerf
+from fixtures.blender_objects import engine_render, scene_with_nerf
 
 
 def _pump(job, seconds=120):
@@ -26,12 +26,12 @@ def _linear_to_srgb(c):
 @pytest.mark.slow
 def test_preview_streams_coarse_to_fine_and_ends_with_the_full_frame(addon, sphere_nerf, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon import preview_render
+    from blender_nerf_deform.addon.render import preview_render
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
     frame = meta["frames"][2]
-    _scene_with_nerf(bpy, ckpt, frame, meta["camera_angle_x"], meta["w"])
+    scene_with_nerf(bpy, ckpt, frame, meta["camera_angle_x"], meta["w"])
 
     started = time.monotonic()
     assert bpy.ops.nerf_deform.preview_render() == {"FINISHED"}
@@ -41,7 +41,7 @@ def test_preview_streams_coarse_to_fine_and_ends_with_the_full_frame(addon, sphe
     assert job.delivered == [(4, 4), (8, 8), (16, 16), (32, 32)]
 
     (tmp_path / "one.json").write_text(json.dumps({**meta, "frames": [frame]}))
-    _engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
+    engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
     name = frame["file_path"].rsplit("/", 1)[-1].rsplit(".", 1)[0]
     expected = np.asarray(Image.open(tmp_path / "cli" / f"{name}.png").convert("RGBA"), dtype=np.float64) / 255
     image = bpy.data.images[preview_render.IMAGE_NAME]
@@ -57,11 +57,11 @@ def test_preview_streams_coarse_to_fine_and_ends_with_the_full_frame(addon, sphe
 @pytest.mark.slow
 def test_cancelled_preview_stops_and_the_next_one_works(addon, sphere_nerf):
     bpy = addon
-    from blender_nerf_deform.addon import preview_render
+    from blender_nerf_deform.addon.render import preview_render
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    _scene_with_nerf(bpy, ckpt, meta["frames"][1], meta["camera_angle_x"], meta["w"])
+    scene_with_nerf(bpy, ckpt, meta["frames"][1], meta["camera_angle_x"], meta["w"])
     bpy.ops.nerf_deform.preview_render()
     job = preview_render.current_job()
     assert bpy.ops.nerf_deform.cancel_preview() == {"FINISHED"}

@@ -1,46 +1,12 @@
 """The NeRF Deform RenderEngine renders what the engine renders, from Blender's camera and placement."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from fixtures import REPO
-
-
-def _engine_render(ckpt, cameras_json, out_dir):
-    proc = subprocess.run(
-        [sys.executable, "-m", "blender_nerf_deform.engine", "render", "--nerf", str(ckpt), "--cameras", str(cameras_json),
-         "--out", str(out_dir)],
-        cwd=REPO, capture_output=True, text=True,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-
-
-def _scene_with_nerf(bpy, ckpt, frame, angle_x, size, nerf_matrix=None):
-    """Load NeRF through its operator, and a camera seeing the NeRF as the dataset frame does."""
-    from mathutils import Matrix
-
-    assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
-    nerf = bpy.context.active_object
-    scene = bpy.context.scene
-    if nerf_matrix is not None:
-        nerf.matrix_world = Matrix(nerf_matrix)
-    cam_data = bpy.data.cameras.new("Camera")
-    cam_data.sensor_fit, cam_data.angle_x = "HORIZONTAL", angle_x
-    camera = bpy.data.objects.new("Camera", cam_data)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    camera.matrix_world = nerf.matrix_world @ Matrix(frame["transform_matrix"])
-    scene.render.resolution_x = scene.render.resolution_y = size
-    scene.render.resolution_percentage = 100
-    scene.render.image_settings.file_format = "PNG"
-    scene.render.image_settings.color_mode = "RGBA"
-    scene.render.image_settings.color_depth = "8"
-    return nerf, camera
+from fixtures.blender_objects import engine_render, render_exr_passes, scene_with_nerf
 
 
 @pytest.mark.slow
@@ -52,7 +18,7 @@ def test_f12_matches_the_engine_cli_render(addon, sphere_nerf, tmp_path, placed)
     frame = meta["frames"][3]
     one = {**meta, "frames": [frame]}
     (tmp_path / "one.json").write_text(json.dumps(one))
-    _engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
+    engine_render(ckpt, tmp_path / "one.json", tmp_path / "cli")
     name = frame["file_path"].rsplit("/", 1)[-1].rsplit(".", 1)[0]
     expected = np.asarray(Image.open(tmp_path / "cli" / f"{name}.png").convert("RGBA"), dtype=np.int16)
 
@@ -61,7 +27,7 @@ def test_f12_matches_the_engine_cli_render(addon, sphere_nerf, tmp_path, placed)
         from mathutils import Euler, Matrix
 
         placement = Matrix.LocRotScale((2.0, -1.0, 0.5), Euler((0.3, -0.2, 1.1)), (1.7, 1.7, 1.7))
-    _scene_with_nerf(bpy, ckpt, frame, meta["camera_angle_x"], meta["w"], placement)
+    scene_with_nerf(bpy, ckpt, frame, meta["camera_angle_x"], meta["w"], placement)
     bpy.context.scene.render.filepath = str(tmp_path / "blender.png")
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
     got = np.asarray(Image.open(tmp_path / "blender.png").convert("RGBA"), dtype=np.int16)
@@ -74,39 +40,19 @@ def test_f12_matches_the_engine_cli_render(addon, sphere_nerf, tmp_path, placed)
     assert np.abs(got[..., :3] - expected[..., :3])[visible].max() <= 3
 
 
-def _render_exr_passes(bpy, path):
-    """Render the scene to a multilayer EXR and read its passes back: {pass name: (H,W[,C]) array}."""
-    import OpenEXR
-
-    scene = bpy.context.scene
-    bpy.context.view_layer.use_pass_z = True
-    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
-    scene.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
-    scene.render.filepath = str(path)
-    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
-    passes = {}
-    with OpenEXR.File(str(path), separate_channels=True) as exr:
-        for part in exr.parts:  # Blender 5 writes one part per pass
-            for name, channel in part.channels.items():
-                _layer, pass_name, chan = name.split(".")
-                passes.setdefault(pass_name, {})[chan] = channel.pixels.copy()
-    return {name: np.stack([c[k] for k in "RGBA" if k in c], -1) if len(c) > 1 else next(iter(c.values()))
-            for name, c in passes.items()}
-
-
 @pytest.mark.slow
 def test_depth_is_planar_world_distance_and_alpha_is_coverage(addon, sphere_nerf, tmp_path):
     bpy = addon
     from mathutils import Euler, Matrix
 
-    from blender_nerf_deform.addon import jobs
+    from blender_nerf_deform.addon.worker import jobs
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
     # A wide lens, so that rays near the corners miss the NeRF's box: nothing there at all.
     frame, size, angle = meta["frames"][5], meta["w"], 2.4
-    nerf, _ = _scene_with_nerf(bpy, ckpt, frame, angle, size)
-    plain = _render_exr_passes(bpy, tmp_path / "plain.exr")
+    nerf, _ = scene_with_nerf(bpy, ckpt, frame, angle, size)
+    plain = render_exr_passes(bpy, tmp_path / "plain.exr")
     assert np.allclose(plain["Alpha"], plain["Combined"][..., 3])
     hit = plain["Alpha"] > 1e-6
     assert hit.any() and (~hit).any()
@@ -126,7 +72,7 @@ def test_depth_is_planar_world_distance_and_alpha_is_coverage(addon, sphere_nerf
     placement = Matrix.LocRotScale((1.0, 2.0, -0.5), Euler((0.2, 0.4, -0.7)), (2.0, 2.0, 2.0))
     nerf.matrix_world = placement
     bpy.context.scene.camera.matrix_world = placement @ Matrix(frame["transform_matrix"]) @ Matrix.Scale(0.5, 4)
-    scaled = _render_exr_passes(bpy, tmp_path / "scaled.exr")
+    scaled = render_exr_passes(bpy, tmp_path / "scaled.exr")
     # Blender composes object matrices in float32, so the rays move by ~1e-7 and a fixed-step
     # march samples slightly different points: equal up to that, not bit for bit.
     assert np.allclose(scaled["Combined"], plain["Combined"], atol=1e-2)
@@ -148,7 +94,7 @@ def test_orthographic_camera_is_refused_by_the_render(addon, sphere_nerf):
     bpy = addon
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    _, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][0], meta["camera_angle_x"], 16)
+    _, camera = scene_with_nerf(bpy, ckpt, meta["frames"][0], meta["camera_angle_x"], 16)
     camera.data.type = "ORTHO"
     with pytest.raises(RuntimeError, match="'Camera' is orthographic"):
         bpy.ops.render.render()
@@ -159,12 +105,12 @@ def test_moving_the_cage_in_cage_modifiers_mode_renders_like_moving_the_camera_b
     bpy = addon
     from mathutils import Matrix, Vector
 
-    from blender_nerf_deform.addon.cage_store import store_cage
+    from blender_nerf_deform.addon.data.cage_store import store_cage
     from blender_nerf_deform.engine.geometry.cage import box_cage
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][4], meta["camera_angle_x"], meta["w"])
+    nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][4], meta["camera_angle_x"], meta["w"])
     rest, tets = box_cage((4, 4, 4), lo=(-1.5, -1.5, -1.5), hi=(1.5, 1.5, 1.5))
     cage = bpy.data.objects.new("Cage", bpy.data.meshes.new("Cage"))
     store_cage(cage.data, rest, tets)

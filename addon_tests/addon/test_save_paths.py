@@ -78,7 +78,7 @@ def test_saved_checkpoint_paths_render_on_a_farm_after_the_project_folder_moved(
 
 
 def test_rebased_path_resolves_against_the_old_file_and_relates_to_the_new_one(addon, tmp_path):
-    from blender_nerf_deform.addon.nerf_ops import rebased_path
+    from blender_nerf_deform.addon.edit.load_nerf import rebased_path
 
     a, b = tmp_path / "a", tmp_path / "a" / "versions"
     assert rebased_path(str(a / "run" / "nerf.ckpt"), "", str(a / "shot.blend")) == "//run/nerf.ckpt"

@@ -1,19 +1,18 @@
 """The "NeRF Objects" sub-panel's facts (scene_panel.nerf_status): visibility, regions, mesh, cage, staleness."""
 
-import numpy as np
 import pytest
 
-from test_build_cage import _nerf
+from fixtures.blender_objects import nerf_with_sphere_surface
 
 
 @pytest.mark.slow
 def test_status_follows_visibility_regions_mesh_and_cage(addon):
     bpy = addon
-    from blender_nerf_deform.addon.scene_panel import NERFDEFORM_PT_scene_nerfs, nerf_status, scene_nerfs
+    from blender_nerf_deform.addon.ui.scene_panel import NERFDEFORM_PT_scene_nerfs, nerf_status, scene_nerfs
 
     layer = bpy.context.view_layer
     assert not NERFDEFORM_PT_scene_nerfs.poll(bpy.context)
-    nerf, surface = _nerf(bpy)
+    nerf, surface = nerf_with_sphere_surface(bpy)
     nerf.nerf_deform.aabb = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
     other = bpy.data.objects.new("Other NeRF", None)
     other.nerf_deform.role = "NERF"

@@ -62,7 +62,7 @@ def test_train_nerf_shows_progress_and_ends_with_a_nerf_object(addon, tmp_path, 
 @pytest.mark.slow
 def test_cancel_keeps_a_loadable_checkpoint_and_resume_continues_it(addon, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon import jobs
+    from blender_nerf_deform.addon.worker import jobs
 
     data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)
     run = tmp_path / "run"

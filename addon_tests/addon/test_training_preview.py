@@ -22,7 +22,7 @@ def _pixels(image) -> np.ndarray:
 
 def _preview_report(bpy, **kwargs) -> str:
     """Run Preview from Python (blocking); its INFO report, which Blender also prints."""
-    from blender_nerf_deform.addon import training_preview
+    from blender_nerf_deform.addon.train import training_preview
 
     assert bpy.ops.nerf_deform.preview_training(**kwargs) == {"FINISHED"}
     return training_preview._last["message"]
@@ -31,8 +31,8 @@ def _preview_report(bpy, **kwargs) -> str:
 @pytest.mark.slow
 def test_a_preview_asked_while_training_comes_back_before_it_ends_then_renders_the_checkpoint(addon, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon import jobs
-    from blender_nerf_deform.addon.training_preview import IMAGE_NAME
+    from blender_nerf_deform.addon.worker import jobs
+    from blender_nerf_deform.addon.train.training_preview import IMAGE_NAME
 
     assert not bpy.ops.nerf_deform.preview_training.poll()  # nothing trains, the panel's run has no checkpoint
     data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)

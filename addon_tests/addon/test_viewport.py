@@ -16,14 +16,14 @@ import time
 import numpy as np
 import pytest
 
-from test_render_engine import _scene_with_nerf
+from fixtures.blender_objects import scene_with_nerf
 
 SIZE = 32
 
 
 def _camera_view(bpy, camera, width, height):
     """The pinhole of a 3D View looking through `camera`, from the matrices Blender gives that view."""
-    from blender_nerf_deform.addon.viewport import pinhole_from_view
+    from blender_nerf_deform.addon.render.viewport import pinhole_from_view
 
     scene = bpy.context.scene
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -53,8 +53,8 @@ class _Redraws:
 
 
 def _viewport(bpy):
-    from blender_nerf_deform.addon import jobs
-    from blender_nerf_deform.addon.viewport import ViewportRender
+    from blender_nerf_deform.addon.worker import jobs
+    from blender_nerf_deform.addon.render.viewport import ViewportRender
 
     redraws = _Redraws()
     viewport = redraws.viewport = ViewportRender(redraws)
@@ -63,7 +63,7 @@ def _viewport(bpy):
 
 def test_the_camera_view_is_framed_as_f12(addon):
     bpy = addon
-    from blender_nerf_deform.addon.camera import pinhole_from_blender
+    from blender_nerf_deform.addon.data.camera import pinhole_from_blender
 
     scene = bpy.context.scene
     camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
@@ -87,8 +87,8 @@ def test_the_camera_view_is_framed_as_f12(addon):
 def test_an_orthographic_view_draws_nothing_and_says_why_once(addon, capsys):
     from mathutils import Matrix
 
-    from blender_nerf_deform.addon.camera import CameraError
-    from blender_nerf_deform.addon.viewport import ViewportRender, pinhole_from_view
+    from blender_nerf_deform.addon.data.camera import CameraError
+    from blender_nerf_deform.addon.render.viewport import ViewportRender, pinhole_from_view
 
     ortho = Matrix.Identity(4)
     ortho[0][0] = ortho[1][1] = 0.2
@@ -112,11 +112,11 @@ def test_coarse_first_then_finer_and_the_last_image_is_f12s(addon, sphere_nerf, 
     bpy = addon
     from mathutils import Matrix
 
-    from blender_nerf_deform.addon.frame_render import render_frame
+    from blender_nerf_deform.addon.render.frame import render_frame
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    _nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][2], meta["camera_angle_x"], SIZE)
+    _nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][2], meta["camera_angle_x"], SIZE)
     if count == 2:  # a second NeRF, nearer the camera, covering part of the first
         assert bpy.ops.nerf_deform.load_nerf(filepath=str(ckpt)) == {"FINISHED"}
         bpy.context.active_object.matrix_world = camera.matrix_world @ Matrix.Translation((0.6, 0.2, -1.8))
@@ -149,12 +149,12 @@ def test_a_new_view_or_pose_restarts_from_coarse_and_nothing_else_does(addon, sp
     bpy = addon
     from mathutils import Matrix
 
-    from blender_nerf_deform.addon.cage_store import store_cage
+    from blender_nerf_deform.addon.data.cage_store import store_cage
     from blender_nerf_deform.engine.geometry.cage import box_cage
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][4], meta["camera_angle_x"], SIZE)
+    nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][4], meta["camera_angle_x"], SIZE)
     rest, tets = box_cage((3, 3, 3), lo=(-1.5, -1.5, -1.5), hi=(1.5, 1.5, 1.5))
     cage = bpy.data.objects.new("Cage", bpy.data.meshes.new("Cage"))
     store_cage(cage.data, rest, tets)
@@ -209,7 +209,7 @@ def test_a_change_while_refining_cancels_the_stale_request_and_it_is_never_shown
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    _nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][1], meta["camera_angle_x"], SIZE)
+    _nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][1], meta["camera_angle_x"], SIZE)
     viewport, redraws, client = _viewport(bpy)
     cancels, restore = _spy_cancels(client)
     try:
@@ -243,7 +243,7 @@ def test_changes_while_the_coarse_image_renders_let_it_land_then_the_newest_rend
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
-    _nerf, camera = _scene_with_nerf(bpy, ckpt, meta["frames"][1], meta["camera_angle_x"], SIZE)
+    _nerf, camera = scene_with_nerf(bpy, ckpt, meta["frames"][1], meta["camera_angle_x"], SIZE)
     viewport, redraws, client = _viewport(bpy)
     cancels, restore = _spy_cancels(client)
     try:
@@ -276,7 +276,7 @@ def test_a_failing_nerf_shows_its_error_in_the_view(addon, sphere_nerf, tmp_path
     meta = json.loads((data / "transforms.json").read_text())
     moved = tmp_path / "nerf.ckpt"
     shutil.copy(ckpt, moved)
-    nerf, camera = _scene_with_nerf(bpy, moved, meta["frames"][1], meta["camera_angle_x"], SIZE)
+    nerf, camera = scene_with_nerf(bpy, moved, meta["frames"][1], meta["camera_angle_x"], SIZE)
     moved.unlink()  # the checkpoint is gone: the worker refuses the request
     viewport, _redraws, client = _viewport(bpy)
     viewport.update_scene(bpy.context.evaluated_depsgraph_get())
@@ -287,26 +287,48 @@ def test_a_failing_nerf_shows_its_error_in_the_view(addon, sphere_nerf, tmp_path
 
 
 def _gpu_available(bpy) -> bool:
+    """Whether this Blender has a GPU context, bringing it up where it can. The bpy module in background
+    mode starts its GPU backend only when a render needs one: a 4x4 Workbench render of a scratch scene
+    does (headless, through EGL: on a machine without a GPU, Mesa's llvmpipe), after which the gpu
+    module draws offscreen as in Blender's window."""
     import gpu
 
+    def offscreen_works() -> bool:
+        try:
+            gpu.types.GPUOffScreen(4, 4).free()
+        except SystemError:  # "GPU functions for drawing are not available in background mode"
+            return False
+        return True
+
+    if offscreen_works():
+        return True
+    scratch = bpy.data.scenes.new("GPU context")
+    camera = bpy.data.objects.new("GPU context", bpy.data.cameras.new("GPU context"))
     try:
-        gpu.types.GPUOffScreen(4, 4).free()
-    except SystemError:  # the bpy module in background mode has no GPU context
-        return False
-    return True
+        scratch.collection.objects.link(camera)
+        scratch.camera = camera
+        scratch.render.engine = "BLENDER_WORKBENCH"
+        scratch.render.resolution_x = scratch.render.resolution_y = 4
+        bpy.ops.render.render(scene=scratch.name)
+    finally:
+        data = camera.data
+        bpy.data.objects.remove(camera)
+        bpy.data.cameras.remove(data)
+        bpy.data.scenes.remove(scratch)
+    return offscreen_works()
 
 
 def test_the_viewport_texture_draws_the_image_upright(addon):
     """view_draw's texture, drawn as view_draw draws it, reads back as the image (top row on top).
-    Needs a GPU context: Blender with a window, or a GPU build; the bpy module headless has none."""
+    Needs a GPU context: in the bpy module headless, the one a Workbench render brings up (EGL)."""
     bpy = addon
-    if not _gpu_available(bpy):
-        pytest.skip("no GPU context in this Blender (the bpy module in background mode)")
+    if not _gpu_available(bpy):  # no EGL at all (no libEGL, or no device it can open): say so
+        pytest.skip("no GPU context: this Blender could not bring up its GPU backend headless (EGL)")
     import gpu
     from gpu_extras.presets import draw_texture_2d
     from mathutils import Matrix
 
-    from blender_nerf_deform.addon.render_engine import image_texture
+    from blender_nerf_deform.addon.render.render_engine import image_texture
 
     h, w = 12, 20
     image = np.zeros((h, w, 4), np.float32)

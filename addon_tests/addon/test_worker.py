@@ -44,7 +44,7 @@ def test_protocol_rejects_truncated_and_foreign_streams():
 
 @pytest.fixture
 def worker():
-    from blender_nerf_deform.addon.worker_client import WorkerClient
+    from blender_nerf_deform.addon.worker.client import WorkerClient
 
     client = WorkerClient(str(REPO / ".venv" / "bin" / "python"))
     yield client
@@ -60,7 +60,7 @@ def test_worker_starts_and_answers(worker):
 
 
 def test_unknown_request_is_an_input_error_and_the_worker_lives_on(worker):
-    from blender_nerf_deform.addon.worker_client import WorkerError
+    from blender_nerf_deform.addon.worker.client import WorkerError
 
     with pytest.raises(WorkerError, match="unknown request 'bake'") as info:
         worker.call("bake")
@@ -92,7 +92,7 @@ def test_crashed_worker_is_restarted_by_the_next_request(worker):
 def test_request_pending_when_the_worker_dies_fails_clearly(worker):
     import time
 
-    from blender_nerf_deform.addon.worker_client import WorkerError
+    from blender_nerf_deform.addon.worker.client import WorkerError
 
     pid = worker.call("info")[0]["pid"]
     os.kill(pid, signal.SIGSTOP)  # frozen: it cannot answer what we send now
@@ -110,7 +110,7 @@ def test_request_pending_when_the_worker_dies_fails_clearly(worker):
 
 
 def test_python_without_torch_gives_a_clear_setup_error():
-    from blender_nerf_deform.addon.worker_client import WorkerClient, WorkerError, python_has_torch
+    from blender_nerf_deform.addon.worker.client import WorkerClient, WorkerError, python_has_torch
 
     # The interpreter that made .venv has neither torch nor the engine's requirements.
     base = sys._base_executable if hasattr(sys, "_base_executable") else sys.executable
@@ -124,7 +124,7 @@ def test_python_without_torch_gives_a_clear_setup_error():
 
 
 def test_missing_worker_python_names_the_path(tmp_path):
-    from blender_nerf_deform.addon.worker_client import WorkerClient, WorkerError
+    from blender_nerf_deform.addon.worker.client import WorkerClient, WorkerError
 
     missing = tmp_path / "nope" / "python"
     with pytest.raises(WorkerError, match=f"{missing} does not exist"):
@@ -132,7 +132,7 @@ def test_missing_worker_python_names_the_path(tmp_path):
 
 
 def test_load_of_a_missing_checkpoint_names_the_path(worker, tmp_path):
-    from blender_nerf_deform.addon.worker_client import WorkerError
+    from blender_nerf_deform.addon.worker.client import WorkerError
 
     assert "load" in worker.ensure_started()["ops"]
     missing = tmp_path / "runs" / "nerf.ckpt"
@@ -143,7 +143,7 @@ def test_load_of_a_missing_checkpoint_names_the_path(worker, tmp_path):
 
 @pytest.mark.slow
 def test_render_cancelled_midway_stops_at_the_next_chunk_and_the_worker_lives_on(worker, sphere_nerf):
-    from blender_nerf_deform.addon.worker_client import WorkerError
+    from blender_nerf_deform.addon.worker.client import WorkerError
 
     ckpt, _ = sphere_nerf
     c2w = [[1, 0, 0, 0], [0, 0, -1, -3], [0, 1, 0, 0], [0, 0, 0, 1]]  # 3 units out on -y, looking at the origin
@@ -245,7 +245,7 @@ def test_a_worker_that_dropped_shared_content_gets_it_again(worker):
 
 
 def test_bad_shared_content_is_a_clear_error_and_the_worker_lives_on(worker):
-    from blender_nerf_deform.addon.worker_client import WorkerError
+    from blender_nerf_deform.addon.worker.client import WorkerError
 
     loads = []
     V, _top, shared = _box_session(loads)

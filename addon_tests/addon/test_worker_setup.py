@@ -1,9 +1,9 @@
-"""Set Up Worker (addon/worker_setup.py): a real environment, built by pip from the package index.
+"""Set Up Worker (addon/worker/setup.py): a real environment, built by pip from the package index.
 
 The extension is installed and enabled as Blender enables extensions, so the operator sets
 the real Worker Python preference. The environment is built once per module into a temporary
 folder (pip's own configuration and cache: the project's CI has the wheels cached by
-`make setup`; the full download is timed by tools/bench_worker_setup.py, BENCHMARKS.md).
+`make setup`; the full download is timed by tools/bench/worker_setup.py, BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def enabled(blender, extension_zip, tmp_path):
     assert bpy.ops.extensions.package_install_files(filepath=str(extension_zip), repo=REPO_MODULE,
                                                     enable_on_install=True) == {"FINISHED"}
     prefs = bpy.context.preferences.addons[EXT_MODULE].preferences
-    yield bpy, prefs, sys.modules[f"{EXT_MODULE}.addon.worker_setup"]
+    yield bpy, prefs, sys.modules[f"{EXT_MODULE}.addon.worker.setup"]
     bpy.ops.preferences.addon_disable(module=EXT_MODULE)
 
 
@@ -69,7 +69,7 @@ def test_setup_creates_the_environment_and_sets_worker_python(enabled, env_folde
     # Last, the engine's kernels were compiled into the cache the worker reads (engine `compile`).
     assert "the kernels are compiled" in (env_folder / "worker-env-setup.log").read_text()
     # The environment really runs the worker: the add-on's own client starts on it and answers.
-    client = sys.modules[f"{EXT_MODULE}.addon.jobs"].worker(bpy.context)
+    client = sys.modules[f"{EXT_MODULE}.addon.worker.jobs"].worker(bpy.context)
     try:
         hello = client.ensure_started()
         assert hello["torch"].startswith(worker_setup.pins()["torch"])

@@ -1,6 +1,7 @@
-"""Every benchmark in tools/ still starts: its imports resolve and `--help` answers. A function a
-benchmark uses that a change removes breaks this test, not the next person's figure (BENCHMARKS.md
-names these scripts in its commands)."""
+"""Every benchmark in tools/bench/ still starts: its imports resolve and `--help` answers; those that
+can run small without a demo scene or Blender run once, tiny. A function a benchmark uses that a
+change removes breaks this test, not the next person's figure (BENCHMARKS.md names these scripts in
+its commands)."""
 
 from __future__ import annotations
 
@@ -12,27 +13,44 @@ import pytest
 
 from fixtures import REPO
 
-# Benchmarks are the tools/bench_*.py scripts that run as programs (bench_geometry_common.py is
-# their shared helper module).
-BENCHMARKS = sorted(p for p in (REPO / "tools").glob("bench_*.py") if '__name__ == "__main__"' in p.read_text())
+BENCH = REPO / "tools" / "bench"
+# The scripts that run as programs (geometry_common.py is their shared helper module).
+BENCHMARKS = sorted(p for p in BENCH.glob("*.py") if '__name__ == "__main__"' in p.read_text())
+LEGO = REPO.parent / "shared" / "datasets" / "lego_200"
+# Tiny runs: (script, arguments, a line the output must hold). They run the code paths the figures
+# come from (a deferred import or a renamed function fails here, not only at full size).
+TINY_RUNS = (
+    ("geometry_locate.py", ("--tets", "2000", "--points", "20000", "--repeat", "1"), "numba (CPU kernels):"),
+    ("geometry_extract.py", ("--resolution", "48"), "cage: total"),
+    ("nerf_field.py", ("--n", "4096", "--repeat", "1"), "ours-torch"),
+    ("nerf_train.py", ("--data", str(LEGO), "--seconds", "3", "--at", "3", "--downscale", "8"), '"psnr"'),
+)
 
 
-def _help(path):
-    return subprocess.run([sys.executable, str(path), "--help"], cwd=REPO, capture_output=True, text=True, timeout=300)
+def _run(path, *args):
+    return subprocess.run([sys.executable, str(path), *args], cwd=REPO, capture_output=True, text=True, timeout=600)
 
 
 def test_the_benchmarks_are_found():
-    assert len(BENCHMARKS) >= 20 and REPO / "tools" / "bench_nerf_train.py" in BENCHMARKS
+    assert len(BENCHMARKS) >= 20 and BENCH / "nerf_train.py" in BENCHMARKS
+    assert not list((REPO / "tools").glob("bench_*.py")), "benchmarks live in tools/bench/"
 
 
 @pytest.mark.parametrize("path", BENCHMARKS, ids=lambda p: p.name)
-def test_a_benchmark_starts_and_answers_help(path, _help_answers):
-    proc = _help_answers[path]
+def test_a_benchmark_starts_and_answers_help(path, _answers):
+    proc = _answers[(path.name, ("--help",))]
     assert proc.returncode == 0 and "usage:" in proc.stdout, f"{path.name}: {(proc.stderr or proc.stdout)[-2000:]}"
 
 
+@pytest.mark.parametrize("script,args,expected", TINY_RUNS, ids=[t[0] for t in TINY_RUNS])
+def test_a_benchmark_runs_tiny(script, args, expected, _answers):
+    proc = _answers[(script, args)]
+    assert proc.returncode == 0 and expected in proc.stdout, f"{script}: {(proc.stderr or proc.stdout)[-2000:]}"
+
+
 @pytest.fixture(scope="module")
-def _help_answers():
+def _answers():
+    runs = [(p.name, ("--help",)) for p in BENCHMARKS] + [(script, args) for script, args, _ in TINY_RUNS]
     # Two at a time: most of each is importing torch and the engine.
     with ThreadPoolExecutor(2) as pool:
-        return dict(zip(BENCHMARKS, pool.map(_help, BENCHMARKS)))
+        return dict(zip(runs, pool.map(lambda run: _run(BENCH / run[0], *run[1]), runs)))

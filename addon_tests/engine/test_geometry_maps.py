@@ -277,3 +277,22 @@ def test_numba_grid_lists_candidates_best_first_whatever_the_thread_count(tmp_pa
     Minv = tet_inverses(V, T)
     first = g.cell_tets[g.cell_start[cells[inside]]]
     assert (barycentric(centres[inside], first, Minv).min(1) > -1e-9).all()
+
+
+# Five tets filling the unit cube, deliberately with mixed orientations (also the add-on's cage-store test's).
+CUBE = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=np.float64)
+CUBE_TETS = np.array([[0, 1, 2, 4], [3, 2, 1, 7], [5, 1, 7, 4], [6, 2, 4, 7], [1, 2, 4, 7]])
+
+
+def _enclosed_volume(vertices, faces):
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    return np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+
+
+def test_boundary_of_a_tetrahedralized_cube_is_its_12_outward_triangles():
+    faces = boundary_faces(CUBE_TETS, CUBE)
+    assert len(faces) == 12
+    assert _enclosed_volume(CUBE, faces) == pytest.approx(1.0)  # outward winding gives +volume
+    # No interior face: every boundary triangle lies on a face of the cube.
+    on_face = [(np.ptp(CUBE[f], axis=0) == 0).any() for f in faces]
+    assert all(on_face)

@@ -1,6 +1,6 @@
 """Stretch fidelity of ray bending (issue 18): cage refinement where a pose stretches, the density scale
 (rest-space length of a step along the ray) and the finer step where a pose compresses, and a CI-sized
-version of the ground-truth benchmark's stretch map (tools/bench_bending_groundtruth.py: a Cycles-rendered
+version of the ground-truth benchmark's stretch map (tools/bench/bending_groundtruth.py: a Cycles-rendered
 bar with a UV checker, a band of it stretched to 2.7x its height)."""
 
 import json
@@ -14,8 +14,8 @@ from blender_nerf_deform.engine.geometry.barycentric import boundary_faces, sign
 from blender_nerf_deform.engine.geometry.cage import box_cage, extend_vertex_labels, refine_around, refine_cage
 from fixtures import REPO
 
-sys.path.insert(0, str(REPO / "tools"))
-import bench_bending_groundtruth as bench  # noqa: E402
+sys.path.insert(0, str(REPO / "tools" / "bench"))
+import bending_groundtruth as bench  # noqa: E402
 
 
 def _area(V, F):
@@ -172,7 +172,7 @@ def test_stretching_a_band_2_7x_renders_within_the_bound_of_the_rest_pose(tmp_pa
     import subprocess
 
     def run(*extra):
-        proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench_bending_groundtruth.py"), "--work",
+        proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench" / "bending_groundtruth.py"), "--work",
                                str(tmp_path), *SMALL, *extra], cwd=REPO, capture_output=True, text=True, timeout=900)
         assert proc.returncode in (0, 1), proc.stdout[-3000:] + proc.stderr[-3000:]
         rows = {r["pose"]: r for r in json.loads((tmp_path / "results.json").read_text())["rows"]}
@@ -197,7 +197,7 @@ def test_a_bad_train_resolution_is_one_error_line(value, tmp_path):
     """The benchmark's --train-resolution (its own process each): refused before anything is rendered."""
     import subprocess
 
-    proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench_bending_groundtruth.py"), "--work",
+    proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench" / "bending_groundtruth.py"), "--work",
                            str(tmp_path / "work"), "--train-resolution", value], cwd=REPO, capture_output=True,
                           text=True, timeout=120)
     errors = [line for line in proc.stderr.splitlines() if "error:" in line]

@@ -1,18 +1,28 @@
 """The Blender half: bpy and numpy only, never torch (docs/ARCHITECTURE.md).
 
-Properties, operators, panels and the RenderEngine live here; heavy work is
-sent to the engine in a worker process.
+Heavy work is sent to the engine in a worker process. The modules sit in one sub-package per
+layer, bottom up: data (what is stored on objects and files), worker (the client of the engine
+worker and the operators that use it), the pipeline's stages (capture, train, edit, deform,
+render), ui (panels, preferences); api.py, the scripting API, sits on top. A module imports from
+its own layer or lower ones only (tools/check_layering.py). This file registers them all.
 """
 
 import atexit
 
-from . import (cage_ops, capture_ops, composite, extract_ops, handles, nerf_ops, panel, pick_ops, preferences, preview, preview_render,
-               photos_ops, properties, region_ops, render_engine, scene_panel, train_ops, training_preview, worker_client,
-               worker_setup)
+from .capture import operators as capture_operators
+from .data import properties
+from .deform import handles, live_preview
+from .edit import cage, extract, load_nerf, pick, regions
+from .render import composite, preview_render, render_engine
+from .train import operators as train_operators
+from .train import photos, training_preview
+from .ui import panel, preferences, scene_panel, stage_panels
+from .worker import client as worker_client
+from .worker import setup as worker_setup
 
-# composite after panel: its sub-panel hangs under the main NeRF Deform panel.
-_modules = (preferences, worker_setup, properties, nerf_ops, region_ops, pick_ops, extract_ops, cage_ops, handles, preview, render_engine, preview_render, panel, scene_panel,
-            composite, train_ops, capture_ops, training_preview, photos_ops)
+# Bottom up; the panels last, the main one before its sub-panels (Blender lists them in this order).
+_modules = (properties, worker_setup, capture_operators, train_operators, training_preview, photos, load_nerf, regions, pick, extract,
+            cage, handles, live_preview, render_engine, preview_render, composite, preferences, panel, scene_panel, stage_panels)
 
 
 def register():
@@ -20,7 +30,7 @@ def register():
         module.register()
     # The bpy module of Blender 4.2 and 4.5 runs Blender's exit (which disables add-ons, in 4.5)
     # only once Python frees `bpy`, after atexit; a worker reader thread still holding callbacks
-    # would keep it alive (exit 139 in 4.2, a hang in 4.5): the worker stops first (worker_client).
+    # would keep it alive (exit 139 in 4.2, a hang in 4.5): the worker stops first (worker/client.py).
     atexit.register(worker_client.shutdown)
 
 

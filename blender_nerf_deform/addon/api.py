@@ -24,7 +24,7 @@ import bpy
 import numpy as np
 from mathutils import Euler, Vector
 
-from .properties import owning_nerf
+from .data.properties import owning_nerf
 
 
 def _run(operator, what: str, **kwargs):
@@ -88,7 +88,7 @@ def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 
     """Train NeRF on a dataset folder (blocking), then the NeRF object that shows it."""
     _run(bpy.ops.nerf_deform.train_nerf, "Train NeRF", data=str(data), run_folder=str(run_folder), seconds=seconds,
          steps=steps, device=device, downscale=downscale, resume=resume)
-    from .paths import default_run_folder
+    from .data.paths import default_run_folder
     import os
 
     ckpt = os.path.join(os.path.abspath(bpy.path.abspath(run_folder)) if run_folder else default_run_folder(
@@ -98,7 +98,7 @@ def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 
 
 def _showing(ckpt: str, what: str) -> bpy.types.Object:
     """The NeRF object that shows the checkpoint `ckpt`."""
-    from .paths import same_file
+    from .data.paths import same_file
 
     for obj in bpy.data.objects:
         if obj.nerf_deform.role == "NERF" and obj.nerf_deform.checkpoint and \
@@ -111,7 +111,7 @@ def import_photos(photos: str, run_folder: str = "", seconds: float = 300.0, ste
                   downscale: int = 1, matcher: str = "exhaustive") -> bpy.types.Object:
     """Import Photos (blocking): the photos' cameras by structure from motion into <run folder>/dataset,
     a NeRF trained on them (run folder default: //nerf_runs/<photos folder name>), then its NeRF object."""
-    from .paths import default_run_folder
+    from .data.paths import default_run_folder
     import os
 
     _run(bpy.ops.nerf_deform.import_photos, "Import Photos", photos=str(photos), run_folder=str(run_folder),

@@ -142,7 +142,7 @@ def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, pow
 # Laplacian, factored once per set of handles (~24 ms for 3 right-hand sides).
 # Same energy and weights as libigl's ARAP_ENERGY_TYPE_ELEMENTS (its
 # `cotmatrix_entries`), so both converge to the same deformation;
-# tools/bench_geometry_arap.py runs them side by side.
+# tools/bench/geometry_arap.py runs them side by side.
 # ---------------------------------------------------------------------------
 
 # Edges of a tet in the column order of igl.cotmatrix_entries.

@@ -22,7 +22,7 @@ it. So, as NeRFshop does, a grid whose cells list the tets overlapping them:
 
 Cell size: about `cells_per_tet` cells per tet over the cage's bounding box,
 the trade-off between candidates per cell (query cost) and pairs per tet
-(build cost and memory); `tools/bench_geometry_locate.py` measures it.
+(build cost and memory); `tools/bench/geometry_locate.py` measures it.
 Memory: torch queries run in chunks of `chunk` points.
 """
 

@@ -13,7 +13,7 @@ cell's list sorted by score, best first. Query: parallel over points, testing
 each point's candidates in that order until the first hit. Sorting the lists
 is what makes the query fast: the tet that covers most of a cell comes first,
 so a point inside the cage tests ~3.8 candidates instead of ~10 (52k-tet
-fTetWild cage, `tools/bench_geometry_locate.py`). Always float64.
+fTetWild cage, `tools/bench/geometry_locate.py`). Always float64.
 
 Used only for CPU tensors; CUDA takes the torch path, so the renderer runs the
 same method everywhere. numba is optional (as for the hash-grid kernels): without

@@ -523,7 +523,7 @@ def tile_order(width: int, height: int, tile: int = TILE) -> torch.Tensor:
 
 
 # Peak bytes a frame holds per pixel: `render` to PNG measured 80 (outputs, tile order, the PNG's copy;
-# tools/bench_frame_memory.py, 2026-12-05); the worker's answer to Blender adds 20 in shared memory.
+# tools/bench/frame_memory.py, 2026-12-05); the worker's answer to Blender adds 20 in shared memory.
 FRAME_BYTES_PER_PIXEL = 120
 
 

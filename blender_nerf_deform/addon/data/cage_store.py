@@ -1,0 +1,261 @@
+"""The cage and the surface embedding, stored in the .blend.
+
+The cage is built once and must render the same frames in a fresh `blender -b`
+process or on a farm, so its exact data lives in the file:
+
+- The cage object: a mesh whose vertices are the rest cage's vertices (so
+  Armature, Lattice or any modifier on it can deform them) and whose faces are
+  the cage's boundary triangles (what an artist needs to see). The exact rest
+  positions (float64; mesh vertices are float32) and the tetrahedra are ID
+  properties of its mesh datablock.
+- The extracted mesh: its embedding in the rest cage, one tet and four
+  barycentric weights per vertex, also as ID properties of its mesh.
+- The cage vertices pinned where an edit region cut the scene (Build Cage with
+  Pin Cut): their indices as an ID property of the cage mesh, which is what ARAP
+  keeps at rest, mirrored in the vertex group "NeRF Cut Pin" (weight 1) of the
+  cage object for artists (a modifier's mask in Cage Modifiers mode). Editing
+  the group does not change the pins: Build Cage does.
+
+ID property arrays are stored compactly and read back through the buffer
+protocol, so a 100k-tet cage costs milliseconds to store and load. Reads copy:
+a numpy view of an ID property outlives it (undo, Build Cage again, quitting)
+and would then read freed memory. Writes delete the old property first: in
+bpy 5.0.1 assigning an array of another length over an existing ID-property
+array corrupts the heap (and fTetWild's vertex count differs on every build).
+
+Each stored cage and embedding also carries its content key (the worker
+session's name for it, `protocol.content_key` of the arrays as sent), so a
+frame or a preview update tells the worker which cage it means without reading,
+hashing or sending the arrays again. Data saved before keys existed gets its
+key computed once per Blender session.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from ...engine.geometry.barycentric import boundary_faces
+from ...engine.service.protocol import content_key
+from .properties import CageDataError, to_nerf_frame
+
+REST_KEY = "nerf_deform_rest_vertices"
+TETS_KEY = "nerf_deform_tets"
+EMBED_TET_KEY = "nerf_deform_embed_tet"
+EMBED_WEIGHTS_KEY = "nerf_deform_embed_weights"
+EMBED_COUNT_KEY = "nerf_deform_embed_vertex_count"
+CAGE_CONTENT_KEY = "nerf_deform_cage_key"
+EMBED_CONTENT_KEY = "nerf_deform_embed_key"
+CUT_PINS_KEY = "nerf_deform_cut_pins"
+CUT_PIN_GROUP = "NeRF Cut Pin"
+_computed_keys: dict[tuple, str] = {}  # keys of data stored without one, by (datablock, property)
+
+
+def _set_property(idblock, name: str, value) -> None:
+    if name in idblock:
+        del idblock[name]  # never assign over an array of another length (module docstring)
+    idblock[name] = value
+
+
+def set_triangles(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Replace a mesh's geometry with vertices (N,3) and triangles (F,3), in bulk."""
+    mesh.clear_geometry()
+    mesh.vertices.add(len(vertices))
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(vertices, dtype=np.float32).ravel())
+    mesh.loops.add(3 * len(faces))
+    mesh.loops.foreach_set("vertex_index", np.ascontiguousarray(faces, dtype=np.int32).ravel())
+    mesh.polygons.add(len(faces))
+    mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(faces), 3, dtype=np.int32))
+    mesh.update(calc_edges=True)
+    repair_selection_attributes(mesh)
+
+
+def repair_selection_attributes(mesh: bpy.types.Mesh) -> None:
+    """Drop mistyped selection attributes (nothing is selected then; `set_triangles` calls it). In bpy 5.0.1
+    `Mesh.update(calc_edges=True)` on a mesh without edges (what `set_triangles` builds) makes
+    ".select_edge" an INT32_2D attribute, the type of ".edge_verts"; selecting an edge of the
+    mesh then (from Python, and so from any script or add-on) crashes Blender."""
+    for name in (".select_vert", ".select_edge", ".select_poly"):
+        attribute = mesh.attributes.get(name)
+        if attribute is not None and attribute.data_type != "BOOLEAN":
+            mesh.attributes.remove(attribute)
+
+
+def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray) -> None:
+    """Write the rest cage into `cage_mesh` (replacing its geometry) and its exact data as ID properties."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    tets = np.asarray(tets)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or tets.ndim != 2 or tets.shape[1] != 4:
+        raise CageDataError(f"cage must be vertices (N,3) and tets (M,4), got {vertices.shape} and {tets.shape}")
+    if tets.size and (tets.min() < 0 or tets.max() >= len(vertices)):
+        raise CageDataError(f"cage tets index vertices outside 0..{len(vertices) - 1}")
+    set_triangles(cage_mesh, vertices, boundary_faces(tets, vertices))
+    _set_property(cage_mesh, REST_KEY, vertices.ravel())
+    _set_property(cage_mesh, TETS_KEY, tets.astype(np.int32).ravel())
+    _set_property(cage_mesh, CAGE_CONTENT_KEY, content_key(vertices, tets.astype(np.int64)))
+
+
+def has_cage(cage_mesh: bpy.types.Mesh | None) -> bool:
+    return cage_mesh is not None and REST_KEY in cage_mesh and TETS_KEY in cage_mesh
+
+
+def load_cage(cage_mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(rest vertices (N,3) float64, tets (M,4) int64) as stored; checks they still match the mesh."""
+    if not has_cage(cage_mesh):
+        raise CageDataError(f"mesh '{cage_mesh.name}' holds no NeRF cage: run Build Cage")
+    rest = np.array(cage_mesh[REST_KEY], dtype=np.float64).reshape(-1, 3)  # copies (module docstring)
+    tets = np.array(cage_mesh[TETS_KEY], dtype=np.int64).reshape(-1, 4)
+    if len(cage_mesh.vertices) != len(rest):
+        raise CageDataError(
+            f"cage mesh '{cage_mesh.name}' has {len(cage_mesh.vertices)} vertices but its cage has {len(rest)}: "
+            "its vertices were added or deleted in Edit Mode; rebuild the cage (Build Cage)"
+        )
+    return rest, tets
+
+
+def store_cut_pins(cage_object: bpy.types.Object, pins: np.ndarray) -> None:
+    """Record the cage vertices pinned at the cut (after `store_cage`): the ID property and the
+    vertex group CUT_PIN_GROUP; none pinned: both removed."""
+    mesh = cage_object.data
+    pins = np.unique(np.asarray(pins, dtype=np.int64).ravel())
+    if len(pins) and (pins[0] < 0 or pins[-1] >= len(mesh.vertices)):
+        raise CageDataError(f"pinned cage vertices index outside 0..{len(mesh.vertices) - 1}")
+    if (group := cage_object.vertex_groups.get(CUT_PIN_GROUP)) is not None:
+        cage_object.vertex_groups.remove(group)
+    if not len(pins):
+        if CUT_PINS_KEY in mesh:
+            del mesh[CUT_PINS_KEY]
+        return
+    _set_property(mesh, CUT_PINS_KEY, pins.astype(np.int32))
+    cage_object.vertex_groups.new(name=CUT_PIN_GROUP).add(pins.tolist(), 1.0, "REPLACE")
+
+
+def cage_vertex_parts(n_vertices: int, tets: np.ndarray, tet_ids: np.ndarray, surface_part: np.ndarray) -> np.ndarray:
+    """The part (edit region) of each cage vertex of a cage built per part (no tet joins two parts):
+    each connected piece of the tets takes the part of the surface vertices embedded in it (the
+    most common one); a piece holding none takes its lower neighbour's in index order (the engine
+    concatenates the parts' cages in part order); -1 when no piece holds a surface vertex."""
+    tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    labels = np.arange(n_vertices, dtype=np.int64)
+    while len(tets):  # connected pieces: hook each tet's roots to its smallest label, then jump
+        low = labels[tets].min(axis=1)
+        new = labels.copy()
+        np.minimum.at(new, labels[tets].ravel(), np.repeat(low, 4))
+        np.minimum.at(new, tets.ravel(), np.repeat(low, 4))
+        while not np.array_equal(new, new[new]):
+            new = new[new]
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    part = np.full(n_vertices, -1, dtype=np.int64)
+    tet_ids, surface_part = np.asarray(tet_ids, dtype=np.int64), np.asarray(surface_part, dtype=np.int64)
+    if not len(tet_ids) or not len(tets):
+        return part
+    pieces = labels[tets[tet_ids, 0]]
+    for piece in np.unique(pieces):
+        values, counts = np.unique(surface_part[pieces == piece], return_counts=True)
+        part[labels == piece] = values[np.argmax(counts)]
+    known = np.flatnonzero(part >= 0)
+    if len(known) < n_vertices:
+        before = np.searchsorted(known, np.arange(n_vertices), side="right") - 1
+        part = np.where(part >= 0, part, part[known[np.maximum(before, 0)]])
+    return part
+
+
+def cage_pins(cage_object: bpy.types.Object) -> np.ndarray:
+    """Indices (int64, sorted) of the cage vertices pinned at the cut; empty when none are."""
+    mesh = cage_object.data
+    if CUT_PINS_KEY not in mesh:
+        return np.zeros(0, dtype=np.int64)
+    pins = np.array(mesh[CUT_PINS_KEY], dtype=np.int64)  # copies (module docstring)
+    if len(pins) and (pins.min() < 0 or pins.max() >= len(mesh.vertices)):
+        raise CageDataError(
+            f"cage mesh '{mesh.name}' has {len(mesh.vertices)} vertices but its pins at the cut index up to {pins.max()}: "
+            "rebuild the cage (Build Cage)"
+        )
+    return pins
+
+
+def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+    """Cage vertices after the cage object's modifiers (Armature, Lattice, ...), in its local frame."""
+    evaluated = cage_object.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        n = len(mesh.vertices)
+        if n != len(cage_object.data.vertices):
+            raise CageDataError(
+                f"the modifiers of cage '{cage_object.name}' change its vertex count ({len(cage_object.data.vertices)} → {n}); "
+                "use deforming modifiers only (Armature, Lattice, Simple Deform, ...)"
+            )
+        co = np.empty(3 * n, dtype=np.float32)
+        mesh.vertices.foreach_get("co", co)
+    finally:
+        evaluated.to_mesh_clear()
+    return co.reshape(-1, 3).astype(np.float64)
+
+
+def deformed_cage_in_nerf_frame(nerf: bpy.types.Object, cage_object: bpy.types.Object, depsgraph, to_nerf=None) -> np.ndarray:
+    """The cage as its modifiers and its own placement deform it, in the NeRF's frame (`to_nerf`: the
+    NeRF's evaluated world -> NeRF frame Matrix, when the caller has it)."""
+    local = evaluated_cage_vertices(cage_object, depsgraph)
+    if to_nerf is None:
+        to_nerf = to_nerf_frame(nerf, nerf.evaluated_get(depsgraph).matrix_world)
+    relative = np.array(to_nerf) @ np.array(cage_object.evaluated_get(depsgraph).matrix_world)
+    return local @ relative[:3, :3].T + relative[:3, 3]
+
+
+def store_embedding(mesh: bpy.types.Mesh, tet_ids: np.ndarray, weights: np.ndarray) -> None:
+    """Embed `mesh`'s vertices in the rest cage: vertex k = weights[k] · cage[tets[tet_ids[k]]]."""
+    tet_ids = np.asarray(tet_ids)
+    weights = np.ascontiguousarray(weights, dtype=np.float64)
+    if tet_ids.shape != (len(mesh.vertices),) or weights.shape != (len(mesh.vertices), 4):
+        raise CageDataError(
+            f"embedding of '{mesh.name}' needs one tet and 4 weights per vertex ({len(mesh.vertices)}), "
+            f"got {tet_ids.shape} and {weights.shape}"
+        )
+    _set_property(mesh, EMBED_TET_KEY, tet_ids.astype(np.int32))
+    _set_property(mesh, EMBED_WEIGHTS_KEY, weights.ravel())
+    _set_property(mesh, EMBED_COUNT_KEY, len(mesh.vertices))
+    _set_property(mesh, EMBED_CONTENT_KEY, content_key(tet_ids.astype(np.int64), weights))
+
+
+def load_embedding(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(tet id per vertex (V,), weights (V,4)) as stored; checks they still match the mesh."""
+    if EMBED_TET_KEY not in mesh or EMBED_WEIGHTS_KEY not in mesh:
+        raise CageDataError(f"mesh '{mesh.name}' is not embedded in a cage: run Build Cage")
+    if mesh.get(EMBED_COUNT_KEY) != len(mesh.vertices):
+        raise CageDataError(
+            f"mesh '{mesh.name}' has {len(mesh.vertices)} vertices but was embedded with {mesh.get(EMBED_COUNT_KEY)}: "
+            "rebuild the cage (Build Cage)"
+        )
+    tet_ids = np.array(mesh[EMBED_TET_KEY], dtype=np.int64)  # copies (module docstring)
+    weights = np.array(mesh[EMBED_WEIGHTS_KEY], dtype=np.float64).reshape(-1, 4)
+    return tet_ids, weights
+
+
+def _stored_key(idblock, name: str, load) -> str:
+    key = idblock.get(name)
+    if isinstance(key, str) and key:
+        return key
+    # Saved before content keys: hash once per session (the data cannot change without Build
+    # Cage, which stores a key).
+    cache_key = (idblock.session_uid, name, len(idblock.vertices))
+    if cache_key not in _computed_keys:
+        _computed_keys[cache_key] = content_key(*load(idblock))
+    return _computed_keys[cache_key]
+
+
+def shared_cage(cage_mesh: bpy.types.Mesh) -> tuple[str, callable]:
+    """The rest cage as worker-session content: (key, loader of its arrays); loaded only when sent."""
+    key = _stored_key(cage_mesh, CAGE_CONTENT_KEY, load_cage)
+    if len(cage_mesh.vertices) * 3 != len(cage_mesh[REST_KEY]):
+        load_cage(cage_mesh)  # raises the error that says what changed
+    return key, lambda: dict(zip(("vertices", "tets"), load_cage(cage_mesh)))
+
+
+def shared_embedding(mesh: bpy.types.Mesh) -> tuple[str, callable]:
+    """The surface's embedding as worker-session content: (key, loader of its arrays)."""
+    if EMBED_TET_KEY not in mesh or mesh.get(EMBED_COUNT_KEY) != len(mesh.vertices):
+        load_embedding(mesh)  # raises the error that says what is wrong
+    key = _stored_key(mesh, EMBED_CONTENT_KEY, load_embedding)
+    return key, lambda: dict(zip(("tet_ids", "weights"), load_embedding(mesh)))

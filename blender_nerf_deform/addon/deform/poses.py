@@ -1,0 +1,123 @@
+"""Poses of a NeRF's cage as worker requests: for a frame's render, and for the live preview.
+
+Determinism (a render farm, F12 and the viewport agree): the request is built
+from the depsgraph-evaluated handles and NeRF at the frame being shown or
+rendered, and the worker's solve depends on nothing else.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from ...engine.service.protocol import content_key
+from ..data.cage_store import cage_pins, deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
+from ..data.properties import PIN_GROUP, handles_of
+from .handles import handle_target, region_vertices
+
+
+def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
+    """`nerf`'s handles at this frame as (pose params, shared content), or None without a handle.
+    `to_nerf`: the NeRF's evaluated world -> NeRF frame Matrix when the caller has it.
+
+    The pose params (mode, one 4x4 transform per handle in the NeRF's frame, their names) are
+    all that changes from frame to frame; the cage, the surface's embedding, the handles'
+    regions and the cage's pins at the cut travel as shared content, by key (sent to a worker once).
+    """
+    s = nerf.nerf_deform
+    handles = handles_of(nerf)
+    surface = s.surface
+    if not handles or surface is None or s.cage is None:
+        return None
+    regions = [region_vertices(surface, h.nerf_deform.region) for h in handles]
+    region_arrays = {
+        "handle_index": np.concatenate(regions) if regions else np.zeros(0, np.int64),
+        "handle_counts": np.array([len(r) for r in regions], dtype=np.int64),
+        "pin_index": region_vertices(surface, PIN_GROUP),
+        # Cage vertices pinned where the edit region cut the scene: ARAP keeps them at rest (a
+        # handle's region wins over them); in Affine Regions only the handles' regions move anyway.
+        "cage_pin_index": cage_pins(s.cage),
+    }
+    pose = {
+        "mode": s.deformation_mode,
+        "transforms": [handle_target(h, nerf, depsgraph, to_nerf).tolist() for h in handles],
+        "handle_names": [h.name for h in handles],
+    }
+    shared = {
+        "cage": shared_cage(s.cage.data),
+        "embedding": shared_embedding(surface.data),
+        "regions": (content_key(*region_arrays.values()), lambda: region_arrays),
+    }
+    return pose, shared
+
+
+def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict, dict]:
+    """What a frame renders `nerf` at: (pose params, arrays, shared content) for the worker's render.
+    `to_nerf`: the NeRF's evaluated world -> NeRF frame (a Matrix) when the caller has it (a render
+    computes it once per NeRF and frame); computed here otherwise.
+
+    Handles: solved in the worker with the frame (ARAP or affine). Cage Modifiers: the cage's
+    vertices as its modifiers deform them. No cage, or no handle: the rest pose.
+    """
+    s = nerf.nerf_deform
+    if s.cage is None or not has_cage(s.cage.data):
+        return {"kind": "rest"}, {}, {}
+    if s.deformation_mode == "MODIFIERS":
+        deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph, to_nerf)
+        return {"kind": "cage"}, {"deformed_vertices": deformed}, {"cage": shared_cage(s.cage.data)}
+    request = handle_pose(nerf, depsgraph, to_nerf)
+    if request is None:
+        return {"kind": "rest"}, {}, {}
+    pose, shared = request
+    return {"kind": "handles", **pose}, {}, shared
+
+
+def deformed_cage(nerf, depsgraph, client) -> np.ndarray | None:
+    """The cage's vertices (NeRF frame) as the frame being shown deforms them, solved as a render
+    solves them (scripts, tests); None when the NeRF has no cage."""
+    s = nerf.nerf_deform
+    if s.cage is None or not has_cage(s.cage.data):
+        return None
+    pose, arrays, shared = frame_pose(nerf, depsgraph)
+    if pose["kind"] == "cage":
+        return arrays["deformed_vertices"]
+    if pose["kind"] == "rest":
+        return load_cage(s.cage.data)[0]
+    _result, out = client.call("solve", pose, shared=shared)
+    return out["deformed_vertices"]
+
+
+class AsyncSolver:
+    """Preview solves for one NeRF: one request in flight, the newest pose waiting behind it.
+    Each asks the worker for the deformed surface itself (answer "surface"), the preview's shape key."""
+
+    def __init__(self, client, on_result):
+        self.client = client
+        self.on_result = on_result
+        self.in_flight = False
+        self.waiting: tuple[dict, dict] | None = None
+        self.last_error = ""
+
+    def request(self, pose: dict, shared: dict) -> None:
+        if self.in_flight:
+            self.waiting = (pose, shared)  # only the newest pose matters
+            return
+        self.in_flight = True
+        self.client.submit("solve", {**pose, "answer": "surface"}, shared=shared, on_done=self._done, on_error=self._failed)
+
+    def _next(self) -> None:
+        self.in_flight = False
+        if self.waiting is not None:
+            pending, self.waiting = self.waiting, None
+            self.request(*pending)
+
+    def _done(self, result: dict, arrays: dict) -> None:
+        self.last_error = ""
+        self.on_result(result, arrays["surface"])
+        self._next()
+
+    def _failed(self, error) -> None:
+        if error.kind != "cancelled" and str(error) != self.last_error:
+            self.last_error = str(error)
+            print(f"NeRF Deform preview: {error}")
+        self._next()

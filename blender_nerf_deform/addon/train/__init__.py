@@ -1,0 +1,1 @@
+"""Train stage: Train NeRF, Import Photos (photos without poses) and Preview Training."""

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The CUDA figures of issues 3-5 in one run, on a machine with an NVIDIA GPU and a Python whose torch
+# has CUDA (the project's `.venv` has the CPU wheel). Writes JSON and logs to $OUT (default ./cuda_out).
+#
+#   DATA=../shared/datasets/lego_200 GT=/work/runs/gt_bench TRAIN_S=120 bash tools/bench/cuda.sh
+#
+# 1. NeRF training on CUDA (lego_200, PSNR on the 9 held-out views at 30 / 60 / TRAIN_S s).
+# 2. extract + cage of that NeRF (the engine's command line).
+# 3. Ray-bent vs undeformed render time on CUDA, 200x200 (tools/bench/bending.py --device cuda).
+# 4. Point location: the torch path on CUDA beside igl and the CPU kernels (tools/bench/geometry_locate.py).
+# 5. Ground-truth deformation benchmark on CUDA, reusing the Cycles ground truth made beforehand on a
+#    machine with Blender (GT: a --work folder of tools/bench/bending_groundtruth.py); trains anew.
+#
+# DEVICE=cpu runs the same steps on the CPU, to check the script before spending GPU time on it.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+PY=${PY:-python3}
+DATA=${DATA:-../shared/datasets/lego_200}
+TRAIN_S=${TRAIN_S:-120}
+DEVICE=${DEVICE:-cuda}
+OUT=${OUT:-cuda_out}
+W=${W:-/tmp/nerf_cuda}
+mkdir -p "$OUT" "$W"
+export PYTHONUNBUFFERED=1
+step() { echo "=== $(date +%T) $*"; }
+
+step machine
+[ "$DEVICE" = cuda ] && nvidia-smi -L
+$PY -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'numpy', numpy.__version__)"
+
+step "1. train lego on $DEVICE for ${TRAIN_S}s"
+$PY tools/bench/nerf_train.py --device "$DEVICE" --data "$DATA" --seconds "$TRAIN_S" --at "30,60,$TRAIN_S" \
+    --json "$OUT/train_$DEVICE.json" --save "$W/lego/nerf.ckpt" 2>&1 | tail -n 6
+
+step "2. extract + cage"
+$PY -m blender_nerf_deform.engine extract --device "$DEVICE" --nerf "$W/lego/nerf.ckpt" --out "$W/lego/mesh.ply" 2>&1 | tail -n 3
+$PY -m blender_nerf_deform.engine cage --nerf "$W/lego/nerf.ckpt" --mesh "$W/lego/mesh.ply" --out "$W/lego/cage.npz" 2>&1 | tail -n 2
+
+step "3. bent vs undeformed render time on $DEVICE"
+$PY tools/bench/bending.py --device "$DEVICE" --nerf "$W/lego/nerf.ckpt" --cage "$W/lego/cage.npz" --data "$DATA" \
+    --every "${EVERY:-10}" --reps "${REPS:-5}" --json "$OUT/bending_$DEVICE.json" 2>&1 | tail -n 30
+
+step "4. point location (incl. CUDA when DEVICE=cuda)"
+CUDA_FLAG=(); [ "$DEVICE" = cuda ] && CUDA_FLAG=(--cuda)
+$PY tools/bench/geometry_locate.py --tets "${TETS:-50000}" --repeat 5 "${CUDA_FLAG[@]}" 2>&1 | tail -n 12 | tee "$OUT/locate.txt"
+
+if [ -n "${GT:-}" ]; then
+    step "5. ground-truth deformation benchmark on $DEVICE"
+    mkdir -p "$W/gt"
+    cp -r "$GT"/data "$GT"/gt_* "$W/gt/"  # gt_*: the deformed ground truths and gt_surface_vertices.npy
+    $PY tools/bench/bending_groundtruth.py --work "$W/gt" --reuse --device "$DEVICE" --train-seconds "$TRAIN_S" 2>&1 | tail -n 16 | tee "$OUT/groundtruth.txt"
+    cp "$W/gt/results.json" "$OUT/groundtruth_$DEVICE.json" 2>/dev/null
+fi
+step done

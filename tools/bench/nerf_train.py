@@ -1,0 +1,154 @@
+#!/usr/bin/env python3
+"""Benchmark: validation PSNR of NeRF training (lego_200 by default; fox, fern, a room) against training time.
+
+Validation split: every 10th view (lego's 90: indices 0, 10, ..., 80) is held
+out; the others train. With --final, the views 5, 15, 25, ... are kept out as well, from
+training and from the validation marks: they are rendered once, at the end, the figure on
+photos nothing was tuned on (tune on the validation marks, report the final split). PSNR is on white (photos without alpha: on the photo itself),
+over all held-out views, measured at the
+given training times (the time spent validating is not counted). Also reports the
+render time of one 200x200 validation frame, samples per ray and peak memory (RSS).
+
+    flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench/nerf_train.py \\
+        --data ../shared/datasets/lego_200 --seconds 600 --json /tmp/train.json
+    flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench/nerf_train.py \
+        --data ../shared/datasets/fox --downscale 4 --seconds 600 --json /tmp/fox.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
+from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel  # noqa: E402
+from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
+from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for  # noqa: E402
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def evaluate(model, ds) -> dict:
+    psnrs, times, spr, cspr = [], [], [], []
+    for cam, img in zip(ds.cameras, ds.images):
+        t = time.perf_counter()
+        out = render_image(model, cam, background=(1.0, 1.0, 1.0))
+        times.append(time.perf_counter() - t)
+        gt = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
+        psnrs.append(-10.0 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
+        spr.append(out["density_samples_per_ray"])
+        cspr.append(out["color_samples_per_ray"])
+    return {"psnr": float(np.mean(psnrs)), "render_s_median": float(np.median(times)),
+            "density_samples_per_ray": float(np.mean(spr)), "color_samples_per_ray": float(np.mean(cspr))}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="../shared/datasets/lego_200")
+    ap.add_argument("--seconds", type=float, default=600)
+    ap.add_argument("--at", default="60,120,300,600", help="training seconds at which to validate")
+    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--save", help="write the final checkpoint here")
+    ap.add_argument("--log2-table", type=int, default=None)
+    ap.add_argument("--finest", type=int, default=None)
+    ap.add_argument("--occ-res", type=int, default=None)
+    ap.add_argument("--target-samples", type=int, default=None)
+    ap.add_argument("--lr-final", type=float, default=None)
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
+    ap.add_argument("--downscale", type=int, default=1, help="box-filter the images by this factor (fox: 4 → 270x480)")
+    ap.add_argument("--scene", default="auto", choices=("auto", "bounded", "unbounded"),
+                    help="the trainer's scene model (auto: unbounded for photos without alpha)")
+    ap.add_argument("--steps-per-diagonal", type=int, default=None)
+    ap.add_argument("--occ-threshold", type=float, default=None, help="occupancy threshold (opacity over one render step)")
+    ap.add_argument("--final", action="store_true",
+                    help="also keep views 5, 15, 25, ... out, evaluated only once at the end (never tune on them)")
+    ap.add_argument("--appearance-dim", type=int, default=0, help="per-image appearance code size (0: none)")
+    ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    ds = load_dataset(args.data, downscale=args.downscale)
+    val_idx = list(range(0, len(ds), 10))
+    final_idx = list(range(5, len(ds), 10)) if args.final else []
+    train = ds.subset([i for i in range(len(ds)) if i % 10 and i not in final_idx])
+    val = ds.subset(val_idx)
+    cfg = config_for(ds, args.scene)
+    if args.steps_per_diagonal:
+        cfg.steps_per_diagonal = args.steps_per_diagonal
+    if args.appearance_dim:
+        cfg.appearance_dim, cfg.appearance_count = args.appearance_dim, len(train)
+    if args.log2_table:
+        cfg.log2_table_size = args.log2_table
+    if args.finest:
+        cfg.finest_resolution = args.finest
+    if args.occ_res:
+        cfg.occ_resolution = args.occ_res
+    if args.occ_threshold is not None:
+        cfg.occ_threshold = args.occ_threshold
+    opts = TrainOptions(max_seconds=args.seconds)
+    if args.target_samples:
+        opts.target_samples = args.target_samples
+    if args.lr_final:
+        opts.lr_final_factor = args.lr_final
+    if args.distortion is not None:
+        opts.distortion_weight = args.distortion
+    torch.manual_seed(0)
+    model = NerfModel(cfg).to(args.device)
+    trainer = Trainer(model, train, opts)
+    marks = [float(x) for x in args.at.split(",") if float(x) <= args.seconds]
+    results = []
+    rss_before_eval = [0.0]
+
+    def callback(tr: Trainer) -> None:
+        while marks and tr.elapsed >= marks[0]:
+            mark = marks.pop(0)
+            rss_before_eval[0] = peak_rss_mb()
+            r = evaluate(tr.model, val)
+            r.update({"at_s": mark, "train_s": round(tr.elapsed, 1), "step": tr.step_count,
+                      "rays_per_step": tr.last.get("rays"), "train_samples_per_ray": tr.last.get("samples_per_ray"),
+                      "train_density_samples_per_ray": tr.last.get("density_samples_per_ray"),
+                      "occupied_cells": int(tr.model.occupancy.mask.sum())})
+            results.append(r)
+            print(json.dumps(r), flush=True)
+
+    t0 = time.perf_counter()
+    trainer.train(progress=False, callback=callback)
+    wall = time.perf_counter() - t0
+    if marks:  # budget ended between marks: validate the final model at the end
+        callback(trainer)
+    final = None
+    if final_idx:
+        final = evaluate(trainer.model, ds.subset(final_idx))
+        final.update({"views": final_idx})
+        print(json.dumps({"final": final}), flush=True)
+    summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],
+               "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
+               "results": results, "final": final, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
+               "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
+               "threads": torch.get_num_threads(), "torch": torch.__version__,
+               "device": str(model.device) + (f" ({torch.cuda.get_device_name()})" if model.device.type == "cuda" else "")}
+    print(json.dumps({k: v for k, v in summary.items() if k != "results"}), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1))
+    if args.save:
+        from blender_nerf_deform.engine.nerf.checkpoint import save_nerf
+
+        save_nerf(model, args.save)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
