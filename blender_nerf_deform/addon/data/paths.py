@@ -52,7 +52,7 @@ def addon_preferences(context=None):
     """The add-on's preferences, or None when it was imported directly rather than enabled."""
     context = context or bpy.context
     addon = context.preferences.addons.get(ADDON_PACKAGE)
-    return addon.ui.preferences if addon is not None else None
+    return addon.preferences if addon is not None else None
 
 
 def worker_python(context=None) -> str:
