@@ -124,7 +124,7 @@ def test_capture_dataset_runs_from_the_installed_extension(installed, tmp_path):
 
     bpy, repo_dir = installed
     capture_ops = sys.modules[f"{EXT_MODULE}.addon.capture.operators"]
-    assert Path(capture_ops.RUNNER).parent == repo_dir / "blender_nerf_deform" / "addon"
+    assert Path(capture_ops.RUNNER).parent == repo_dir / "blender_nerf_deform" / "addon" / "capture"
     # An unsaved file's datasets go to the extension's user folder.
     assert Path(bpy.utils.extension_path_user(EXT_MODULE)) in Path(capture_ops.default_output_folder("S")).parents
     bpy.context.scene.render.engine = "CYCLES"
