@@ -136,3 +136,14 @@ def test_moving_the_cage_in_cage_modifiers_mode_renders_like_moving_the_camera_b
 
     assert _psnr(moved_content, moved_camera) >= 35  # 8-bit PNGs of a bent render vs a plain one
     assert _psnr(moved_content, still) < _psnr(moved_content, moved_camera) - 10
+
+
+def test_a_mirrored_handle_and_folds_are_each_reported_in_one_line(addon):
+    """The worker's answer for a frame names a mirrored handle (surface ARAP cannot mirror without a
+    fold) and any folded tets (Cage Modifiers can fold); F12 reports each as one warning line."""
+    from blender_nerf_deform.addon.render.frame import render_warnings
+
+    mirrored, folded = render_warnings("Fox", 7, {"reflected_handles": ["Tail"], "inverted_tets": 3})
+    assert "Fox, frame 7" in mirrored and "Tail mirrors its region" in mirrored and "positive scale" in mirrored
+    assert "3 inverted" in folded and "\n" not in mirrored + folded
+    assert render_warnings("Fox", 1, {"min_det_f": 0.4, "surface_residual": 0.01}) == []

@@ -28,8 +28,12 @@ from blender_nerf_deform.engine.geometry.deform import ArapDeformer
 from blender_nerf_deform.engine.geometry.warmup import lattice_cage
 v, t = lattice_cage((0, 0, 0), (2.0, 1.0, 3.0), n=5)
 top, bottom = np.flatnonzero(v[:, 2] > 2.9), np.flatnonzero(v[:, 2] < 0.1)
-A = np.eye(4); A[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # a quarter turn: the flip-free step runs
+A = np.eye(4); A[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # a quarter turn
 ArapDeformer(v, t, handles=[top], pins=[bottom]).solve([A], max_iter=5)
+from blender_nerf_deform.engine.geometry.embedding import embed_points
+from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
+p = v[(v[:, 0] > 0.1) & (v[:, 0] < 1.9)] * 0.98 + 0.01
+SurfaceArap(v, t, embed_points(p, v, t), [np.flatnonzero(p[:, 2] > 2.5)], np.flatnonzero(p[:, 2] < 0.5)).solve([A])
 """
 
 

@@ -31,7 +31,7 @@ from scipy import ndimage
 
 from blender_nerf_deform.engine.bend.posed import PosedRenderer
 from blender_nerf_deform.engine.geometry.cage import build_nerf_cage, cut_pins
-from blender_nerf_deform.engine.geometry.deform import RegionDeformer
+from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.embedding import embed_points
 from blender_nerf_deform.engine.geometry.extract import extract_nerf_mesh
 from blender_nerf_deform.engine.geometry.region import region_from_dict
@@ -143,8 +143,11 @@ def test_pinned_cut_keeps_the_floor_around_a_lifted_statue(floor_nerf):
         moved = surface.apply(deformed[name])[handle]
         want = V[handle] @ pose[:3, :3].T + pose[:3, 3]
         print(f"{name}: ARAP {stats}, handle off its target by {np.abs(moved - want).max():.2e}")
-        assert np.abs(moved - want).max() < 1e-3
-    assert np.abs(deformed["pinned"][pins] - cage.vertices[pins]).max() < 1e-9
+        # The handle pulls its surface in a least-squares sense (surface_arap): within 1 % of its size.
+        assert np.linalg.norm(moved - want, axis=1).max() < 0.01 * np.linalg.norm(np.ptp(V[handle], axis=0))
+    # The cut's pins are soft too: within a thousandth of the cage's size.
+    diag = np.linalg.norm(np.ptp(cage.vertices, axis=0))
+    assert np.linalg.norm(deformed["pinned"][pins] - cage.vertices[pins], axis=1).max() < 1e-3 * diag
 
     # A camera looking down at the statue's foot at 30 degrees, from the statue's front-left.
     el, az, dist, target = math.radians(30.0), math.radians(-70.0), 3.0, np.array([0.0, 0.0, -0.7])

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.cage import PIN_DEPTH, build_cage, check_closed_mesh, cut_from_region, cut_pins
-from blender_nerf_deform.engine.geometry.deform import RegionDeformer
+from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.embedding import embed_points
 from blender_nerf_deform.engine.geometry.extract import extract_mesh
 from blender_nerf_deform.engine.geometry.mesh_io import load_cage, read_ply, save_cage, write_ply
@@ -121,8 +121,10 @@ def test_cage_is_pinned_at_the_cut_and_the_foot_stays(picked):
     lift[2, 3] = 0.3
     foot = cage.vertices[:, 2] < -0.9
     pinned_pose, stats = RegionDeformer(cage.vertices, cage.tets, embedding, [top], cage_pins=pins).solve([lift])
-    assert stats["converged"]
-    assert np.abs(pinned_pose[pins] - cage.vertices[pins]).max() == 0.0
+    assert stats["converged"] and stats["min_det_f"] > 0
+    # The cut's pins are soft (surface_arap): they stay within a thousandth of the cage's size.
+    diag = np.linalg.norm(np.ptp(cage.vertices, axis=0))
+    assert np.linalg.norm(pinned_pose[pins] - cage.vertices[pins], axis=1).max() < 1e-3 * diag
     assert np.linalg.norm(pinned_pose[foot] - cage.vertices[foot], axis=1).max() < 0.05
     # The top followed its handle: its cage vertices near the target.
     tip = cage.vertices[:, 2] > 0.8
@@ -230,7 +232,7 @@ def test_two_regions_give_two_objects_each_with_its_own_cage():
     turn[:3, :3] = euler_xyz_matrix(0.0, 0.3, 0.0)
     posed, stats = RegionDeformer(cage.vertices, cage.tets, embedding, [top], cage_pins=pins).solve([turn])
     assert stats["converged"]
-    assert np.abs(posed[cage_part == 1] - cage.vertices[cage_part == 1]).max() == 0.0
+    assert np.abs(posed[cage_part == 1] - cage.vertices[cage_part == 1]).max() < 1e-12  # no handle, no pin: held at rest
     assert np.linalg.norm(posed[cage_part == 0] - cage.vertices[cage_part == 0], axis=1).max() > 0.1
     # And a handle on the box moves only the box.
     box_handle = np.flatnonzero(res.part == 1)

@@ -135,7 +135,7 @@ def test_a_squash_scales_density_by_the_rest_length_of_the_step_and_refines_the_
             assert torch.allclose(sy, torch.ones(2), atol=1e-5)
             assert bend.step_refine == pytest.approx(2.0)
             assert bend.render_kwargs()["step"] == pytest.approx(model.config.render_step / 2)
-            # A crease: one content tet squashed 10x (a bend's inside, a tet the flip-free step holds
+            # A crease: one content tet squashed 10x (a bend's inside, a tet the fold-free ARAP holds
             # near flat) does not make the whole frame march 4x finer; the frame's step is the share's.
             crease = rest.copy()
             first = int(bend._content_tets[0])

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
-"""Inverted cage tets and solve time per frame of `make demo`'s animation: ARAP alone vs ARAP + the
-flip-free step (engine/geometry/injective.py), on the demo's own cage, regions and handle poses.
+"""Inverted cage tets, the handles' surface residual and solve time per frame of `make demo`'s
+animation: ARAP with the handles pinned to cage vertices (how poses were solved before issue 30) vs
+the add-on's surface ARAP (engine/geometry/surface_arap.py: the handles pull the surface, no tet can
+invert), on the demo's own cage, regions and handle poses.
 
     flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench/arap_injectivity.py [--demo demo_out]
         [--poses POSES.npz] [--save-poses POSES.npz] [--repeat 3]
@@ -11,11 +13,13 @@ for every frame the add-on's own `deformation.handle_pose` gives the handles' tr
 frame) and the shared content (cage, embedding, regions) a render request carries. `--save-poses`
 keeps them in an .npz, and `--poses` reads one instead of the .blend (no bpy needed).
 
-Each frame is then solved as the worker's render op solves it (`RegionDeformer` built from the
-same arrays, `solve(transforms)`), once with `injective=False` (ARAP alone, what `make demo` ran
-before) and once with the step; inverted tets are counted as the renderer counts them
-(`barycentric.inversion_report`, det F < -1e-6). Times are the median of --repeat solves per frame,
-after one warm-up solve (numba kernels compiled, the factorizations made).
+Each frame is then solved as the worker's render op solves it (`handle_pose.RegionDeformer` built
+from the same arrays, `solve(transforms)`), and by `deform.ArapDeformer` with the regions mapped to
+cage vertices as hard constraints (`regions_to_cage`; the pinned region and the cut's cage vertices
+pinned). Inverted tets are counted as the renderer counts them (`barycentric.inversion_report`,
+det F < -1e-6); the surface residual is the largest distance of a handle's surface vertex from its
+handle's affine, over the region's size. Times are the median of --repeat solves per frame, after one
+warm-up solve (numba kernels compiled, the factorizations made).
 """
 
 from __future__ import annotations
@@ -79,60 +83,65 @@ def main() -> int:
 
     from geometry_common import machine
     from blender_nerf_deform.engine.geometry.barycentric import inversion_report
-    from blender_nerf_deform.engine.geometry.deform import RegionDeformer, split_regions
+    from blender_nerf_deform.engine.geometry.deform import ArapDeformer, apply_affine, regions_to_cage, split_regions
     from blender_nerf_deform.engine.geometry.embedding import Embedding
+    from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 
     V, T = data["cage.vertices"].astype(np.float64), data["cage.tets"].astype(np.int64)
     tet_ids = data["embedding.tet_ids"]
     embedding = Embedding(tet_ids=tet_ids, corners=T[tet_ids], weights=data["embedding.weights"], n_outside=0)
     regions = split_regions(data["regions.handle_index"], data["regions.handle_counts"])
-    print(f"machine: {machine()}; cage {len(V)} vertices, {len(T)} tets; {len(regions)} handles, "
-          f"{len(data['transforms'])} frames", flush=True)
+    pins, cut = data["regions.pin_index"], data.get("regions.cage_pin_index")
+    print(f"machine: {machine()}; cage {len(V)} vertices, {len(T)} tets; {len(regions)} handles "
+          f"({', '.join(str(len(r)) for r in regions)} surface vertices), {len(data['transforms'])} frames", flush=True)
 
-    def build(injective):
-        return RegionDeformer(V, T, embedding, regions, data["regions.pin_index"], mode=str(data["mode"]),
-                              cage_pins=data.get("regions.cage_pin_index"), injective=injective)
+    surface_rest = embedding.apply(V)
+    sizes = [float(np.linalg.norm(np.ptp(surface_rest[r], axis=0))) for r in regions]
 
-    plain, step = build(False), build(True)
-    plain.solve(list(data["transforms"][-1]))  # warm-up: kernels, factorizations
-    step.solve(list(data["transforms"][-1]))
+    def residual(U, transforms):
+        S = embedding.apply(U)
+        return max(float(np.linalg.norm(S[r] - apply_affine(surface_rest[r], A), axis=1).max()) / size
+                   for r, A, size in zip(regions, transforms, sizes))
+
+    # Before: the regions' cage vertices pinned to their targets (a handle's region wins over the cut).
+    cage_regions = regions_to_cage(embedding, list(regions) + ([pins] if len(pins) else []), len(V))
+    fixed = cage_regions[len(regions):]
+    if cut is not None and len(cut):
+        cut = np.setdiff1d(cut, np.concatenate(cage_regions[:len(regions)]))
+        fixed = [np.union1d(fixed[0], cut)] if fixed else [cut]
+    hard = ArapDeformer(V, T, cage_regions[:len(regions)], fixed)
+    surface = RegionDeformer(V, T, embedding, regions, pins, mode="ARAP", cage_pins=data.get("regions.cage_pin_index"))
+    last = list(data["transforms"][-1])
+    hard.solve(last)  # warm-up: kernels, factorizations
+    surface.solve(last)
     rows = []
     for frame, transforms in zip(data["frames"], data["transforms"]):
         tr = list(transforms)
-        times = {"arap": [], "step": []}
+        times = {"hard": [], "surface": []}
         for _ in range(max(1, args.repeat)):
             t0 = time.perf_counter()
-            a, _ = plain.solve(tr)
-            times["arap"].append(time.perf_counter() - t0)
+            a = hard.solve(tr).vertices
+            times["hard"].append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            b, stats = step.solve(tr)
-            times["step"].append(time.perf_counter() - t0)
-        again, _ = step.solve(tr)
+            b, stats = surface.solve(tr)
+            times["surface"].append(time.perf_counter() - t0)
+        again, _ = surface.solve(tr)
         ia, ib = inversion_report(V, a, T), inversion_report(V, b, T)
-        moved = float(np.abs(b - a).max()) / plain.arap.diag
-        rows.append((int(frame), ia.n_inverted, ia.det.min(), ib.n_inverted, ib.det.min(),
-                     np.median(times["arap"]) * 1e3, np.median(times["step"]) * 1e3,
-                     stats.get("injective_iterations", 0), stats.get("injective_start", "-"),
-                     stats.get("handle_residual", 0.0), moved, bool(np.array_equal(again, b))))
-    print("| frame | inverted tets, ARAP alone | min det F | inverted tets, ARAP + step | min det F | solve ms, ARAP alone | "
-          "solve ms, ARAP + step | step iterations | step's start | handle residual (/ diagonal) | "
-          "largest vertex change (/ diagonal) | same result twice |")
-    print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | --- |")
+        rows.append((int(frame), ia.n_inverted, ia.det.min(), residual(a, tr), np.median(times["hard"]) * 1e3,
+                     ib.n_inverted, ib.det.min(), stats["surface_residual"], np.median(times["surface"]) * 1e3,
+                     stats["iterations"], stats["barrier_tets"], bool(np.array_equal(again, b))))
+    print("| frame | inverted tets, hard | min det F | surface residual | solve ms | inverted tets, surface ARAP | "
+          "min det F | surface residual | solve ms | iterations | tets under the barrier | same result twice |")
+    print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for r in rows:
-        print(f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]} | {r[4]:.3f} | {r[5]:.1f} | {r[6]:.1f} | {r[7]} | {r[8]} | "
-              f"{r[9]:.1e} | {r[10]:.2e} | {'yes' if r[11] else 'NO'} |")
-    bent = [r for r in rows if r[1] > 0]
-    print(f"\nframes with inverted tets: ARAP alone {len(bent)} of {len(rows)} ({sum(r[1] for r in rows)} tets in all, "
-          f"at most {max((r[1] for r in rows), default=0)}); ARAP + step {sum(r[3] > 0 for r in rows)} "
-          f"({sum(r[3] for r in rows)} tets)")
-    if bent:
-        print(f"solve time on those frames: ARAP alone median {np.median([r[5] for r in bent]):.1f} ms, "
-              f"ARAP + step median {np.median([r[6] for r in bent]):.1f} ms, max {max(r[6] for r in bent):.1f} ms")
-    fine = [r for r in rows if r[1] == 0]
-    if fine:
-        print(f"frames ARAP already gets right: largest vertex change by the step {max(r[10] for r in fine):.1e} of the "
-              f"cage's diagonal; solve median {np.median([r[5] for r in fine]):.1f} ms alone, "
-              f"{np.median([r[6] for r in fine]):.1f} ms with the step")
+        print(f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.2%} | {r[4]:.1f} | {r[5]} | {r[6]:.3f} | {r[7]:.2%} | {r[8]:.1f} | "
+              f"{r[9]} | {r[10]} | {'yes' if r[11] else 'NO'} |")
+    print(f"\nhard: {sum(r[1] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[1] for r in rows)} in all), "
+          f"surface residual up to {max(r[3] for r in rows):.2%}, solve median {np.median([r[4] for r in rows]):.1f} ms, "
+          f"max {max(r[4] for r in rows):.1f} ms")
+    print(f"surface ARAP: {sum(r[5] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[5] for r in rows)} in all), "
+          f"surface residual up to {max(r[7] for r in rows):.2%}, solve median {np.median([r[8] for r in rows]):.1f} ms, "
+          f"max {max(r[8] for r in rows):.1f} ms")
     return 0
 
 

@@ -89,7 +89,8 @@ def psnr(a, b) -> float:
 
 def demo_scene(demo: Path, width: int, height: int):
     """(checkpoint, camera, pose function () -> (deformed vertices, solve seconds), rest vertices, tets)."""
-    from blender_nerf_deform.engine.geometry.deform import RegionDeformer, split_regions
+    from blender_nerf_deform.engine.geometry.deform import split_regions
+    from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
     from blender_nerf_deform.engine.geometry.embedding import Embedding
     from blender_nerf_deform.engine.service.ops import _camera
 

@@ -81,8 +81,8 @@ def main() -> int:
             per.append(r.seconds)
         per = np.array(per)
         stepped = r.vertices
-        # ARAP alone (its own figures; the flip-free step after it: tools/bench/arap_injectivity.py).
-        conv = arap.solve([transform(args.frames)], max_iter=200, tol=1e-4, injective=False)
+        # ARAP with pinned cage vertices (the add-on's fold-free surface ARAP: tools/bench/arap_injectivity.py).
+        conv = arap.solve([transform(args.frames)], max_iter=200, tol=1e-4)
         inv = inversion_report(V, conv.vertices, T)
         print(
             f"{backend} {energy}: precompute {pre:.2f} s; per-frame step ({args.iters} iteration(s), warm start) "

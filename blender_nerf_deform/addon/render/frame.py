@@ -123,11 +123,19 @@ def passes(out: dict, depth_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return linear.astype(np.float32), depth
 
 
-def tet_warning(nerf_name: str, frame: int, result: dict) -> str | None:
-    if not (result.get("inverted_tets") or result.get("degenerate_tets")):
-        return None
-    return (f"NeRF Deform: {nerf_name}, frame {frame}: {result.get('inverted_tets', 0)} inverted and "
-            f"{result.get('degenerate_tets', 0)} degenerate cage tets (folds show the folded content)")
+def render_warnings(nerf_name: str, frame: int, result: dict) -> list[str]:
+    """What the worker's answer for one NeRF's frame asks the artist to know: a mirrored handle (no
+    fold-free pose can mirror a region), inverted or degenerate cage tets (Cage Modifiers can fold)."""
+    warnings = []
+    if mirrored := result.get("reflected_handles"):
+        warnings.append(f"NeRF Deform: {nerf_name}, frame {frame}: handle{'s' if len(mirrored) > 1 else ''} "
+                        f"{', '.join(mirrored)} mirror{'' if len(mirrored) > 1 else 's'} its region (a negative scale); "
+                        "a deformation that never folds cannot mirror, so the region stays unmirrored: "
+                        "give the handle a positive scale")
+    if result.get("inverted_tets") or result.get("degenerate_tets"):
+        warnings.append(f"NeRF Deform: {nerf_name}, frame {frame}: {result.get('inverted_tets', 0)} inverted and "
+                        f"{result.get('degenerate_tets', 0)} degenerate cage tets (folds show the folded content)")
+    return warnings
 
 
 def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should_cancel=None, on_status=None) -> Frame:
@@ -159,8 +167,7 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
 
             result, out = client.call("render", request.params, request.arrays, shared=request.shared,
                                       on_progress=progress, should_cancel=should_cancel)
-            if warning := tet_warning(nerf.name, scene.frame_current, result):
-                frame.warnings.append(warning)
+            frame.warnings.extend(render_warnings(nerf.name, scene.frame_current, result))
             layers.append(passes(out, request.depth_factor))
         frame.rgba, frame.depth = composite_by_depth(layers)
     except (CameraError, ValueError, WorkerError) as error:

@@ -72,7 +72,7 @@ _CORNERS = np.array([[k & 1, (k >> 1) & 1, k >> 2] for k in range(8)])
 # march with a finer step: render_step / (the compression that STEP_REFINE_SHARE of the content's rest
 # volume reaches or exceeds), once that exceeds STEP_REFINE_FROM, at most MAX_STEP_REFINE times finer.
 # The step is the whole frame's, so a share and not the maximum: a bend's crease squashes a few tets
-# strongly (the flip-free step holds some near flat: compressions of 25-125x on 1-2 % of make demo's
+# strongly (the fold-free ARAP holds some near flat: compressions of 25-125x on 1-2 % of make demo's
 # content), and refining the whole frame for them made a bent 1080p demo frame 2.5x slower
 # (BENCHMARKS.md, issue 18); a squash of the whole part (the ground truth's 0.5x) still refines.
 STEP_REFINE_FROM = 1.5

@@ -1,8 +1,14 @@
-"""Deformers of the cage: an affine transform of a region, and ARAP from handles.
+"""Deformers of the cage: an affine transform of a region, and ARAP with its handles on cage vertices.
 
 Regions are chosen on the extracted mesh (the artist selects its vertices in
 Blender) and mapped to cage vertices through the surface embedding: the cage
 vertices that carry the selected surface vertices' barycentric weights.
+
+The add-on's poses come from handle_pose.RegionDeformer: Affine Regions with the
+affines here, ARAP with surface_arap.SurfaceArap (the handles pull the surface, and
+no tet can invert). `ArapDeformer` below pins cage vertices to their targets (hard
+constraints): the reference for the kernels both share (against libigl's
+arap_solve, tools/bench/geometry_arap.py) and what poses came from before.
 
 ARAP (elements energy on tets, libigl's cotangent weights; our local/global
 iteration with numba kernels and a prefactored sparse LU, or libigl's
@@ -152,8 +158,7 @@ class ArapResult:
     iterations: int
     last_step: float  # largest vertex move of the last iteration, relative to the cage's diagonal
     converged: bool
-    seconds: float  # the whole solve, the flip-free step included
-    injective: object = None  # injective.InjectiveResult of the flip-free step, when it was asked for
+    seconds: float
 
 
 class ArapDeformer:
@@ -311,23 +316,12 @@ class ArapDeformer:
                 out[own] = linear_blend(self.rest[own], [r for r, _ in mine], [A for _, A in mine])
         return out
 
-    def injective_step(self):
-        """The flip-free step of this deformer (engine/geometry/injective.py), made on first use."""
-        if getattr(self, "_injective", None) is None:
-            from .injective import InjectiveStep
-
-            self._injective = InjectiveStep(self)
-        return self._injective
-
     def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None,
-              strict: bool = False, injective: bool = True) -> ArapResult:
+              strict: bool = False) -> ArapResult:
         """Iterate from `initial` (default: the linear blend of the handles' affines, a deterministic
         start that is already right for rigid motions) until converged or `max_iter` iterations.
-
-        `injective` (numba backend): where the result has a tet with det F below the flip-free
-        step's threshold (0.1), that step follows (injective.py): no tet inverted, the handles on
-        their targets, continuous in the pose; a result without such a tet is returned as ARAP
-        gave it. Its report is the result's `injective`."""
+        Hard constraints know nothing of orientation: a strong bend on a coarse cage can invert
+        tets. The add-on's poses use surface_arap.SurfaceArap, which cannot."""
         t0 = time.perf_counter()
         bc = self.constraints(transforms)
         if initial is None:
@@ -337,17 +331,12 @@ class ArapDeformer:
         U, it, step = self._iterate(bc, U, max_iter, tol)
         if strict and step >= tol:
             raise EngineError(f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, tolerance {tol:.0e})")
-        report = None
-        if injective and self.backend == "numba":
-            report = self.injective_step()(U, bc)
-            U = report.vertices
-        res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0, report)
+        res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0)
         self.U = U
         return res
 
     def step(self, transforms: list, iterations: int = 1) -> ArapResult:
-        """A fixed number of iterations warm-started from the previous result (interactive preview).
-        No flip-free step here: `solve` is what renders and the add-on's preview use."""
+        """A fixed number of iterations warm-started from the previous result."""
         t0 = time.perf_counter()
         bc = self.constraints(transforms)
         U = np.array(self.rest if self.U is None else self.U, dtype=np.float64)
@@ -384,79 +373,3 @@ def tet_components(n_vertices: int, tets: np.ndarray) -> np.ndarray:
     edges = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 3]]])
     graph = coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
     return connected_components(graph, directed=False)[1]
-
-
-def unconstrained_components(n_vertices: int, tets: np.ndarray, constrained: list) -> np.ndarray:
-    """Vertices of the cage's connected pieces that hold no constrained vertex (sorted indices).
-
-    A cage built around several objects (one per edit region) falls apart into pieces that share
-    no tet; ARAP cannot place a piece nothing holds (its system is singular there), and the artist
-    means it to stay where it is."""
-    labels = tet_components(n_vertices, tets)
-    count = int(labels.max()) + 1
-    if count == 1:
-        return np.zeros(0, dtype=np.int64)
-    held = np.zeros(count, dtype=bool)
-    for region in constrained:
-        held[labels[np.asarray(region, dtype=np.int64)]] = True
-    return np.flatnonzero(~held[labels]).astype(np.int64)
-
-
-class RegionDeformer:
-    """The cage pose of handle transforms: regions of the extracted mesh moved by their handles.
-
-    `mode` "ARAP": the handles' regions follow their transforms, the pinned region
-    stays, everything else moves as rigidly as possible (ArapDeformer, factorized
-    once here). "AFFINE": each region's cage vertices take their handle's transform,
-    the rest stay. Built once per cage, embedding and set of regions; `solve`
-    per frame depends only on the transforms given (F12, farms and the preview agree).
-    """
-
-    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_regions: list,
-                 pin_region: np.ndarray | None = None, names: list[str] | None = None, mode: str = "ARAP",
-                 cage_pins: np.ndarray | None = None, injective: bool = True):
-        """`pin_region`: surface vertices the artist pinned; `cage_pins`: cage vertices pinned where
-        an edit region cut the scene (cage.cut_pins). A handle's region wins over the cut's pins.
-        `injective`: ARAP's result gets the flip-free step (ArapDeformer.solve) where it needs it."""
-        if mode not in ("ARAP", "AFFINE"):
-            raise EngineError(f"unknown deformation mode {mode!r}: ARAP or AFFINE")
-        self.mode, self.injective = mode, bool(injective)
-        self.rest = np.asarray(rest_vertices, dtype=np.float64)
-        names = list(names or [f"handle {i}" for i in range(len(handle_regions))])
-        pins = [np.asarray(pin_region, dtype=np.int64)] if pin_region is not None and len(pin_region) else []
-        regions = regions_to_cage(embedding, list(handle_regions) + pins, len(self.rest),
-                                  names + ["the pinned region"] * len(pins))
-        self.n_handles = len(handle_regions)
-        self.cage_regions = regions[: self.n_handles]
-        fixed = regions[self.n_handles:]
-        if cage_pins is not None and len(cage_pins):
-            cut = np.asarray(cage_pins, dtype=np.int64)
-            if cut.min() < 0 or cut.max() >= len(self.rest):
-                raise EngineError(f"the cut's pinned cage vertices must index 0..{len(self.rest) - 1}")
-            moved = np.concatenate(self.cage_regions) if self.cage_regions else np.zeros(0, np.int64)
-            cut = np.setdiff1d(cut, moved)
-            if len(cut):
-                fixed = [np.union1d(fixed[0], cut)] if fixed else [cut]
-        if mode == "ARAP":
-            free = unconstrained_components(len(self.rest), tets, self.cage_regions + fixed)
-            if len(free):  # a cage of several objects (edit regions): one without handle or pin stays
-                fixed = [np.union1d(fixed[0], free)] if fixed else [free]
-        self.arap = ArapDeformer(self.rest, tets, self.cage_regions, fixed) if mode == "ARAP" else None
-        self.precompute_s = self.arap.precompute_s if self.arap is not None else 0.0
-
-    def solve(self, transforms: list) -> tuple[np.ndarray, dict]:
-        """(deformed cage vertices, stats) for one 4x4 transform per handle."""
-        if len(transforms) != self.n_handles:
-            raise EngineError(f"{len(transforms)} handle transforms for {self.n_handles} handles")
-        if self.arap is None:
-            deformed = self.rest
-            for region, transform in zip(self.cage_regions, transforms):
-                deformed = affine_region(deformed, region, transform)
-            return deformed, {}
-        result = self.arap.solve(transforms, injective=self.injective)
-        stats = {"iterations": result.iterations, "converged": bool(result.converged), "solve_s": result.seconds}
-        step = result.injective
-        if step is not None and step.ran:
-            stats.update(arap_inverted_tets=step.inverted_before, injective_iterations=step.iterations,
-                         injective_start=step.start, injective_s=step.seconds, handle_residual=step.handle_residual)
-        return result.vertices, stats

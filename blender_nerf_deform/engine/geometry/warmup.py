@@ -1,7 +1,8 @@
 """Compile the geometry stage's CPU kernels ahead of time (`compile` command, Set Up Worker).
 
-As nerf/warmup.py: a tiny cage (a 3x3x3 lattice of vertices, 48 tets) posed by ARAP with the flip-free
-step, and its points located, runs each kernel with the argument types real cages pass.
+As nerf/warmup.py: a tiny cage (a 3x3x3 lattice of vertices, 48 tets) posed by ARAP (with pinned cage
+vertices, and the add-on's surface ARAP with its barrier active), and its points located, runs each
+kernel with the argument types real cages pass.
 """
 
 from __future__ import annotations
@@ -9,7 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from .deform import ArapDeformer
+from .embedding import embed_points
 from .locate import TetLocator
+from .surface_arap import SurfaceArap
 
 # The six tets of a unit cube sharing its diagonal 0-7 (corner k at bits x=1, y=2, z=4): a conforming
 # split when every cube of a lattice uses it.
@@ -49,10 +52,13 @@ def compile_kernels() -> None:
     vertices, tets = lattice_cage((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
     top, bottom = np.flatnonzero(vertices[:, 2] > 0.5), np.flatnonzero(vertices[:, 2] < -0.5)
     arap = ArapDeformer(vertices, tets, handles=[top], pins=[bottom])
-    # A strong twist of the top layer, so the flip-free step runs too.
+    # A strong twist of the top layer, so the surface ARAP's barrier acts too.
     twist = np.eye(4)
     twist[:2, :2] = [[np.cos(2.5), -np.sin(2.5)], [np.sin(2.5), np.cos(2.5)]]
     arap.solve([twist], max_iter=3)
     arap.step([np.eye(4)])
+    surface = 0.9 * vertices[np.abs(vertices).max(axis=1) > 0.9]  # points on a box inside the cage
+    SurfaceArap(vertices, tets, embed_points(surface, vertices, tets), [np.flatnonzero(surface[:, 2] > 0.5)],
+                np.flatnonzero(surface[:, 2] < -0.5)).solve([twist], max_iter=5)
     points = np.random.default_rng(0).uniform(-1.2, 1.2, (256, 3))
     TetLocator(bent_pose(vertices), tets).locate(points, return_barycentric=True)

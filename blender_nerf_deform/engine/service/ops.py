@@ -51,9 +51,10 @@ from ..bend.posed import PosedRenderer
 from ..errors import EngineError
 from ..geometry.cage import (build_cage, build_nerf_cage, build_part_cages, cut_pins, extend_vertex_labels,
                               part_cut_pins, refine_around)
-from ..geometry.deform import RegionDeformer, split_regions
+from ..geometry.deform import split_regions
 from ..geometry.embedding import Embedding, embed_points, embed_points_by_part
 from ..geometry.extract import density_fn_of, extract_nerf_mesh, extract_nerf_regions, first_dense_point
+from ..geometry.handle_pose import RegionDeformer
 from ..geometry.region import region_from_dict
 from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera

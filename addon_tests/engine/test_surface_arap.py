@@ -1,0 +1,123 @@
+"""The add-on's ARAP pose (engine/geometry/surface_arap.py): handles pull the embedded surface, no tet
+ever inverts. A bend that folds ARAP with handles pinned to cage vertices comes out flip-free with the
+handles' surface close to its targets; the result depends on the frame's pose alone and is
+continuous in it; a reflection is named, not folded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blender_nerf_deform.engine.errors import EngineError
+from blender_nerf_deform.engine.geometry.barycentric import inversion_report
+from blender_nerf_deform.engine.geometry.cage import box_cage
+from blender_nerf_deform.engine.geometry.deform import ArapDeformer, regions_to_cage
+from blender_nerf_deform.engine.geometry.embedding import embed_points
+from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
+from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
+
+
+def _turn_x(degrees, centre):
+    a = np.radians(degrees)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    A = np.eye(4)
+    A[:3, :3], A[:3, 3] = R, centre - R @ centre
+    return A
+
+
+@pytest.fixture(scope="module")
+def bar():
+    """A bar's surface (a grid on its sides and ends) in a box cage of 4x4x16 cells; regions of the
+    surface: the base (pinned), the middle and the tip (two handles), 0.05 apart along the bar."""
+    V, T = box_cage((4, 4, 16), lo=(-0.15, -0.15, -0.05), hi=(0.15, 0.15, 1.05))
+    g, zs = np.linspace(-0.1, 0.1, 6), np.linspace(0.0, 1.0, 41)
+    points = np.array([[x, y, z] for z in zs for y in g for x in g
+                       if abs(x) > 0.099 or abs(y) > 0.099 or z in (0.0, 1.0)])
+    z = points[:, 2]
+    regions = {"base": np.flatnonzero(z < 0.12), "middle": np.flatnonzero((z > 0.5) & (z < 0.7)),
+               "tip": np.flatnonzero(z > 0.75)}
+    return V, T, points, embed_points(points, V, T), regions
+
+
+def _bend(points, regions, degrees):
+    """The middle turned one way and the tip the other, each about its own centre: 2 x degrees apart."""
+    return [_turn_x(degrees, points[regions["middle"]].mean(0)), _turn_x(-degrees, points[regions["tip"]].mean(0))]
+
+
+def test_a_bend_that_folds_pinned_cage_vertices_stays_flip_free_with_the_surface_on_its_handles(bar):
+    V, T, points, embedding, regions = bar
+    pose = _bend(points, regions, 60)  # two adjacent handles turned 120 degrees apart, the base pinned
+    middle, tip, base = regions_to_cage(embedding, [regions["middle"], regions["tip"], regions["base"]], len(V))
+    hard = ArapDeformer(V, T, handles=[middle, tip], pins=[base]).solve(pose, max_iter=200)
+    assert inversion_report(V, hard.vertices, T).n_inverted >= 10  # the old way folds: the test can fail
+
+    solver = SurfaceArap(V, T, embedding, [regions["middle"], regions["tip"]], regions["base"])
+    result = solver.solve(pose)
+    report = inversion_report(V, result.vertices, T)
+    assert report.n_inverted == 0 and report.n_degenerate == 0 and result.min_det > 0.01, report.summary()
+    assert result.converged and result.barrier_tets > 0  # the barrier did shape this pose
+    # Each handle's surface follows its affine to within 2 % of the region's size (the cage has about
+    # 3 tets across the gap between the two regions), and the pinned base stays.
+    surface = embedding.apply(result.vertices)
+    for name, A in zip(("middle", "tip"), pose):
+        r = regions[name]
+        size = np.linalg.norm(np.ptp(points[r], axis=0))
+        off = np.linalg.norm(surface[r] - (points[r] @ A[:3, :3].T + A[:3, 3]), axis=1).max() / size
+        assert off < 0.02, (name, off)
+    assert np.linalg.norm(surface[regions["base"]] - points[regions["base"]], axis=1).max() < 0.002
+    assert result.surface_residual < 0.02
+
+
+def test_a_pose_depends_on_its_transforms_alone(bar):
+    V, T, points, embedding, regions = bar
+    solver = SurfaceArap(V, T, embedding, [regions["middle"], regions["tip"]], regions["base"])
+    pose = _bend(points, regions, 50)
+    first = solver.solve(pose).vertices
+    solver.solve(_bend(points, regions, 10))  # another frame in between (render order, a farm's split)
+    assert np.array_equal(solver.solve(pose).vertices, first)
+    fresh = SurfaceArap(V, T, embedding, [regions["middle"], regions["tip"]], regions["base"])
+    assert np.array_equal(fresh.solve(pose).vertices, first)
+
+
+def test_the_pose_is_continuous_across_the_angle_where_the_barrier_switches_on(bar):
+    V, T, points, embedding, regions = bar
+    solver = SurfaceArap(V, T, embedding, [regions["middle"], regions["tip"]], regions["base"])
+    results, active = [], []
+    for degrees in np.linspace(8, 20, 7):
+        r = solver.solve(_bend(points, regions, degrees))
+        assert inversion_report(V, r.vertices, T).n_inverted == 0
+        results.append(r.vertices)
+        active.append(r.barrier_tets)
+    assert active[0] == 0 and active[-1] > 0, active  # the sweep crosses where the barrier starts to act
+    diag = np.linalg.norm(np.ptp(V, axis=0))
+    jumps = [np.abs(b - a).max() / diag for a, b in zip(results, results[1:])]
+    assert max(jumps) < 2.5 * np.median(jumps), jumps
+
+
+def test_a_rigid_motion_of_every_region_is_followed_exactly(bar):
+    V, T, points, embedding, regions = bar
+    every = np.arange(len(points))
+    A = _turn_x(35, np.array([0.1, -0.2, 0.3]))
+    A[:3, 3] += [0.2, 0.0, -0.1]
+    result = SurfaceArap(V, T, embedding, [every]).solve([A])
+    assert np.allclose(result.vertices, V @ A[:3, :3].T + A[:3, 3], atol=1e-9)
+    assert result.surface_residual < 1e-9 and result.iterations <= 2
+
+
+def test_a_reflected_handle_is_named_and_nothing_folds(bar):
+    V, T, points, embedding, regions = bar
+    mirror = np.diag([1.0, -1.0, 1.0, 1.0])  # a handle scaled by -1 along y
+    deformer = RegionDeformer(V, T, embedding, [regions["tip"]], regions["base"], names=["Tip"])
+    posed, stats = deformer.solve([mirror])
+    assert stats["reflected_handles"] == ["Tip"]
+    assert inversion_report(V, posed, T).n_inverted == 0 and stats["min_det_f"] > 0
+
+
+def test_bad_regions_are_refused_with_one_line(bar):
+    V, T, points, embedding, regions = bar
+    with pytest.raises(EngineError, match="overlap"):
+        SurfaceArap(V, T, embedding, [regions["tip"], regions["tip"][:5]])
+    with pytest.raises(EngineError, match="has no vertices"):
+        SurfaceArap(V, T, embedding, [np.zeros(0, dtype=np.int64)])
+    with pytest.raises(EngineError, match="handle transforms"):
+        SurfaceArap(V, T, embedding, [regions["tip"]]).solve([])

@@ -1,0 +1,355 @@
+"""ARAP whose handles pull the extracted surface, minimised without ever inverting a tet.
+
+The cage pose of a frame is the minimiser, over the cage's vertex positions U, of
+
+    E(U) = E_ARAP(U) + sum_k w_k |c_k . U - t_k|^2 + kappa sum_t vol_t b(J_t)
+
+- E_ARAP: the elements energy on the cage's tets (deform.ArapDeformer's, the same kernels).
+- The constraints are points of the surface, not cage vertices: c_k is the barycentric row of a
+  surface vertex of a handle's region (its tet's four corners, the embedding's weights), t_k that
+  vertex's rest position moved by the handle's affine; a pinned surface vertex keeps its rest
+  position. So does a cage vertex pinned where an edit region cut the scene (a unit row), and every
+  vertex of a piece of the cage nothing else holds. The constraints are soft (least squares), as
+  NeRF-Editing drives its cage through control points: where a coarse cage has a tet whose
+  corners carry two handles' regions, no cage vertex is pinned to a target it cannot reach
+  without folding; the surface follows its handle as closely as the rest of the cage allows
+  (`surface_residual` says how closely).
+- b(J) = -(J - j)^2 log(J / j) below j (0.1), 0 above, +inf at J <= 0, on J_t = det F_t: the clamped
+  log barrier of IPC (Li et al. 2020) on det F, as the locally injective maps of SLIM (Rabinovich et
+  al. 2017) bound it. C2 and exactly 0 above j: a pose that keeps every tet above j is pure ARAP.
+
+Flip-free by construction: the solve starts from a flip-free configuration made from the pose alone
+(the linear blend of the handles' affines, pulled back towards the rest cage until every tet keeps
+J >= j / 2; the rest cage itself at worst), and every step goes through a line search that refuses
+any configuration with a tet at J <= 0. Each iterate, so the result, has no inverted tet, and a
+frame's result depends on that frame's handles alone (never on the frame rendered before).
+
+Each iteration is a quasi-Newton step whose matrix is 2 (L + C^T W C) (L the cotangent Laplacian of
+the elements energy), factored once per set of handles: with no barrier active its full step is one
+ARAP local/global iteration. Tets below j add their Gauss-Newton terms kappa vol b''(J) g g^T by the
+Woodbury identity (a few) or one sparse LU of the whole matrix (many). Backtracking (Armijo) line
+search on E. Bounded by an iteration count, not a clock (a result must not depend on the machine).
+
+A handle whose affine is a reflection (a negative scale) asks for what no fold-free deformation
+can give: the solve stays flip-free and its surface does not follow; `reflected` names it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import EngineError
+from . import arap_kernels
+from .arap_kernels import _E0, _E1
+from .deform import _matrix, check_disjoint, linear_blend, tet_components
+
+WOODBURY_TETS = 48  # up to this many tets below the threshold, their Hessian terms enter by Woodbury
+
+
+@dataclass
+class SurfacePose:
+    vertices: np.ndarray  # (n, 3) the posed cage
+    iterations: int
+    converged: bool  # the last step moved less than `tol` x the cage's diagonal
+    seconds: float
+    min_det: float  # smallest det F over the tets (> 0: nothing inverted)
+    surface_residual: float  # largest distance of a handle's surface vertex from its target, / that region's size
+    barrier_tets: int  # tets below the barrier's threshold in the result (where the barrier shaped the pose)
+    reflected: list = field(default_factory=list)  # names of handles whose affine is a reflection
+
+
+def tet_dets(U: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(M,) det[b-a, c-a, d-a] of each tet (6 x signed volume)."""
+    P = U[T]
+    e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
+    return np.einsum("mi,mi->m", e1, np.cross(e2, e3))
+
+
+def barrier(J: np.ndarray, j: float) -> np.ndarray:
+    """b(J) elementwise: 0 for J >= j, +inf for J <= 0."""
+    out = np.zeros_like(J)
+    low = J < j
+    Jl = J[low]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out[low] = np.where(Jl > 0, -((Jl - j) ** 2) * np.log(np.maximum(Jl, 1e-300) / j), np.inf)
+    return out
+
+
+def _barrier_d1_d2(J: np.ndarray, j: float) -> tuple[np.ndarray, np.ndarray]:
+    """b'(J), b''(J) for 0 < J < j."""
+    x, r = J - j, np.log(J / j)
+    return -2.0 * x * r - x * x / J, -2.0 * r - 4.0 * x / J + x * x / (J * J)
+
+
+class SurfaceArap:
+    """The flip-free ARAP pose of a cage from handles on its embedded surface.
+
+    Built once per cage, embedding and set of regions (the factorization); `solve(transforms)` per
+    frame. `handle_points`: surface vertex indices of each handle's region; `pin_points`: surface
+    vertices pinned at rest; `cage_pins`: cage vertices pinned at rest (the edit region's cut).
+    `stiffness`: the constraints' weight against ARAP's, per cage vertex a region touches."""
+
+    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_points: list,
+                 pin_points: np.ndarray | None = None, cage_pins: np.ndarray | None = None,
+                 names: list[str] | None = None, stiffness: float = 100.0, threshold: float = 0.1,
+                 barrier_stiffness: float = 1000.0):
+        import igl
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import splu
+
+        t0 = time.perf_counter()
+        V = np.ascontiguousarray(rest_vertices, dtype=np.float64)
+        T = np.ascontiguousarray(tets, dtype=np.int64)
+        n = len(V)
+        if not 0.0 < threshold < 1.0:
+            raise EngineError(f"the det F threshold must lie in (0, 1), got {threshold}")
+        self.rest, self.tets, self.j = V, T, float(threshold)
+        self.diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+        self.det0 = tet_dets(V, T)
+        if (self.det0 <= 0).any():
+            raise EngineError(f"the rest cage has {int((self.det0 <= 0).sum())} tets that are not positively oriented")
+        self.vol0 = self.det0 / 6.0
+        self.kappa = float(barrier_stiffness) / self.j
+
+        # ARAP's elements energy: cotangent weights per tet edge, rest edges, its Laplacian.
+        self._W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)
+        self._E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])
+        i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self._W.ravel()
+        self.L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))),
+                               shape=(n, n)).tocsr()
+        self._slots = np.argsort(T.ravel(), kind="stable")
+        self._slot_start = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(T.ravel(), minlength=n), out=self._slot_start[1:])
+        self._corner = np.empty((len(T), 4, 3))
+        self._tet_energy = np.empty(len(T))
+
+        # The constraint rows: the handles' surface vertices, the pinned ones, the cut's cage vertices.
+        self.names = list(names or [f"handle {k}" for k in range(len(handle_points))])
+        pins = [np.asarray(pin_points, dtype=np.int64)] if pin_points is not None and len(pin_points) else []
+        regions = check_disjoint(list(handle_points) + pins, len(embedding.weights), self.names + ["the pinned region"] * len(pins))
+        unit = float(self.L.diagonal().mean()) * float(stiffness)
+        rows_c, rows_w, row_weight, self._handle_rows, self._region_size = [], [], [], [], []
+        rest_points = []
+        for r in regions:
+            corners, weights = embedding.corners[r], embedding.weights[r]
+            touched = len(np.unique(corners[weights > 1e-12]))
+            first = sum(len(c) for c in rows_c)
+            rows_c.append(corners)
+            rows_w.append(weights)
+            # A region's pull is `stiffness` x ARAP's per cage vertex it touches, however many surface
+            # vertices carry it (a dense mesh must not outweigh the cage's own stiffness).
+            row_weight.append(np.full(len(r), unit * touched / len(r)))
+            points = np.einsum("nk,nkc->nc", weights, V[corners])
+            rest_points.append(points)
+            self._handle_rows.append(np.arange(first, first + len(r)))
+            self._region_size.append(max(float(np.linalg.norm(np.ptp(points, axis=0))), 1e-12 * self.diag))
+        self._handle_rows = self._handle_rows[: len(handle_points)]
+        held = np.zeros(n, dtype=bool)
+        for c, w_ in zip(rows_c, rows_w):
+            held[c[w_ > 1e-12]] = True
+        fixed = np.zeros(0, dtype=np.int64)
+        if cage_pins is not None and len(cage_pins):
+            fixed = np.asarray(cage_pins, dtype=np.int64)
+            if fixed.min() < 0 or fixed.max() >= n:
+                raise EngineError(f"the cut's pinned cage vertices must index 0..{n - 1}")
+        pieces = tet_components(n, T)
+        loose = np.flatnonzero(~np.isin(pieces, pieces[np.union1d(np.flatnonzero(held), fixed)]))
+        fixed = np.union1d(fixed, loose)  # a piece of the cage nothing holds stays where it is
+        if not len(regions) and not len(fixed):
+            raise EngineError("ARAP needs at least one handle or pinned region")
+        if len(fixed):
+            rows_c.append(np.repeat(fixed[:, None], 4, axis=1))
+            rows_w.append(np.tile([1.0, 0.0, 0.0, 0.0], (len(fixed), 1)))
+            row_weight.append(np.full(len(fixed), unit))
+            rest_points.append(V[fixed])
+        self._rows_c = np.concatenate(rows_c)
+        self._rows_w = np.concatenate(rows_w)
+        self._row_weight = np.concatenate(row_weight)
+        self._rest_points = np.concatenate(rest_points)
+        k = len(self._rows_c)
+        self.C = sp.csr_matrix((self._rows_w.ravel(), (np.repeat(np.arange(k), 4), self._rows_c.ravel())), shape=(k, n))
+        self.A = (self.L + self.C.T @ sp.diags(self._row_weight) @ self.C).tocsc()
+        try:
+            self._lu = splu(self.A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
+        except RuntimeError as e:
+            raise EngineError(f"the cage pose's system is singular ({e}); is the cage degenerate?") from e
+        self._pieces = pieces
+        self.precompute_s = time.perf_counter() - t0
+
+    # -- the energy ---------------------------------------------------------------------------
+    def targets(self, transforms: list) -> np.ndarray:
+        """(k, 3) the constraint rows' targets: handles' points moved by their affines, the rest at rest."""
+        if len(transforms) != len(self._handle_rows):
+            raise EngineError(f"{len(transforms)} handle transforms for {len(self._handle_rows)} handles")
+        t = self._rest_points.copy()
+        for rows, A in zip(self._handle_rows, transforms):
+            A = _matrix(A)
+            t[rows] = self._rest_points[rows] @ A[:3, :3].T + A[:3, 3]
+        return t
+
+    def _evaluate(self, U: np.ndarray, t: np.ndarray):
+        """(E, J, B): the energy (inf when a tet has J <= 0), det F per tet, ARAP's right-hand side at U."""
+        J = tet_dets(U, self.tets) / self.det0
+        if not (J > 0).all():
+            return np.inf, J, None
+        U = np.ascontiguousarray(U)
+        arap_kernels.arap_local(U, self.tets, self._W, self._E, self._corner, self._tet_energy)
+        B = np.empty_like(U)
+        arap_kernels.gather_rhs(self._corner, self._slot_start, self._slots, B)
+        r = self.C @ U - t
+        E = float(self._tet_energy.sum()) + float((self._row_weight * (r * r).sum(1)).sum())
+        E += self.kappa * float((self.vol0 * barrier(J, self.j)).sum())
+        return E, J, B
+
+    def _barrier_terms(self, U: np.ndarray, J: np.ndarray):
+        """Tets below j, dJ/dU per corner (k, 4, 3), kappa vol b'(J) and kappa vol b''(J)."""
+        act = np.flatnonzero(J < self.j)
+        P = U[self.tets[act]]
+        e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
+        g = np.empty((len(act), 4, 3))
+        g[:, 1], g[:, 2], g[:, 3] = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
+        g[:, 1:] /= self.det0[act, None, None]
+        g[:, 0] = -g[:, 1:].sum(1)
+        d1, d2 = _barrier_d1_d2(J[act], self.j)
+        w = self.kappa * self.vol0[act]
+        return act, g, w * d1, w * d2
+
+    # -- the step direction ---------------------------------------------------------------------
+    def _solve_A(self, R: np.ndarray) -> np.ndarray:
+        return 0.5 * self._lu.solve(R)  # (2 A)^-1 R
+
+    def _direction(self, r: np.ndarray, act, g, d2) -> np.ndarray:
+        """(2 A + sum_t d2_t g_t g_t^T)^-1 r."""
+        if len(act) <= WOODBURY_TETS:
+            return self._woodbury(r, act, g, d2)
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import splu
+
+        n = len(r)
+        dof = (self.tets[act][:, :, None] + n * np.arange(3)[None, None, :]).reshape(len(act), 12)  # coordinate-major
+        gg = g.reshape(len(act), 12)
+        vals = d2[:, None, None] * gg[:, :, None] * gg[:, None, :]
+        ii = np.broadcast_to(dof[:, :, None], vals.shape).ravel()
+        jj = np.broadcast_to(dof[:, None, :], vals.shape).ravel()
+        H = (sp.kron(sp.identity(3), 2.0 * self.A) + sp.coo_matrix((vals.ravel(), (ii, jj)), shape=(3 * n, 3 * n))).tocsc()
+        lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
+        return lu.solve(r.T.ravel()).reshape(3, n).T
+
+    def _woodbury(self, r: np.ndarray, act, g, d2) -> np.ndarray:
+        """(2A + Z Z^T)^-1 r, Z = [sqrt(d2_t) g_t]: the columns of (2A)^-1 at the active tets' vertices
+        are kept for the rest of this solve (A does not change; not across solves, so a frame's
+        result does not depend on the frames before)."""
+        x = self._solve_A(r)
+        if not len(act):
+            return x
+        k = len(act)
+        verts, local = np.unique(self.tets[act], return_inverse=True)
+        local = local.reshape(k, 4)
+        missing = [v for v in verts.tolist() if v not in self._columns]
+        if missing:
+            unit = np.zeros((len(r), len(missing)))
+            unit[missing, np.arange(len(missing))] = 1.0
+            for v, col in zip(missing, self._solve_A(unit).T):
+                self._columns[v] = col
+        W = np.stack([self._columns[v] for v in verts.tolist()], axis=1)  # (n, nv)
+        s = np.sqrt(np.maximum(d2, 0.0))
+        S = np.zeros((3, len(verts), k))
+        cols = np.arange(k)
+        for c in range(4):
+            for a in range(3):
+                np.add.at(S[a], (local[:, c], cols), s * g[:, c, a])
+        Wv = W[verts]
+        M = np.eye(k) + sum(S[a].T @ Wv @ S[a] for a in range(3))
+        y = np.linalg.solve(M, sum(S[a].T @ x[verts, a] for a in range(3)))
+        return x - W @ np.stack([S[a] @ y for a in range(3)], axis=1)
+
+    # -- the solve ----------------------------------------------------------------------------
+    def _first_guess(self, transforms: list) -> np.ndarray:
+        """The linear blend of the handles' affines (pins at rest), per piece of the cage, pulled back
+        towards the rest cage until every tet keeps J >= j / 2: flip-free, from the pose alone."""
+        mats = [_matrix(A) for A in transforms]
+        centres = [self.C[rows].T @ np.full(len(rows), 1.0 / len(rows)) for rows in self._handle_rows]
+        # Each handle drives the cage vertices its region's surface leans on most.
+        owner = np.full(len(self.rest), -1)
+        if centres:
+            weight = np.stack(centres)  # (handles, n)
+            owner = np.where(weight.max(0) > 0, weight.argmax(0), -1)
+        regions = [np.flatnonzero(owner == h) for h in range(len(mats))]
+        regions = [(r, A) for r, A in zip(regions, mats) if len(r)]
+        if not regions:
+            return self.rest.copy()
+        held = np.flatnonzero(np.asarray(abs(self.C).sum(0)).ravel() > 0)
+        still = np.setdiff1d(held, np.concatenate([r for r, _ in regions]))
+        blend_regions = [r for r, _ in regions] + ([still] if len(still) else [])
+        blend_mats = [A for _, A in regions] + ([np.eye(4)] if len(still) else [])
+        start = np.array(self.rest, copy=True)
+        for piece in np.unique(self._pieces):
+            own = np.flatnonzero(self._pieces == piece)
+            local = np.full(len(self.rest), -1, dtype=np.int64)
+            local[own] = np.arange(len(own))
+            mine = [(local[r[self._pieces[r] == piece]], A) for r, A in zip(blend_regions, blend_mats)]
+            mine = [(r, A) for r, A in mine if len(r)]
+            if mine:
+                start[own] = linear_blend(self.rest[own], [r for r, _ in mine], [A for _, A in mine])
+        D = start - self.rest
+
+        def ok(s):
+            return bool((tet_dets(self.rest + s * D, self.tets) >= 0.5 * self.j * self.det0).all())
+
+        if ok(1.0):
+            return start
+        lo, hi = 0.0, 1.0
+        for _ in range(12):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+        return self.rest + lo * D
+
+    def solve(self, transforms: list, max_iter: int = 100, tol: float = 1e-4) -> SurfacePose:
+        """The cage posed by one 4x4 affine per handle (NeRF frame). Stops when a step moves no vertex
+        more than `tol` x the cage's diagonal, after at most `max_iter` iterations."""
+        t0 = time.perf_counter()
+        t = self.targets(transforms)
+        U = self._first_guess(transforms)
+        E, J, B = self._evaluate(U, t)
+        if not np.isfinite(E):
+            raise EngineError("internal: the cage pose started from a configuration with an inverted tet")
+        self._columns = {}
+        weighted = self._row_weight[:, None]
+        it, moved = 0, np.inf
+        for it in range(1, max_iter + 1):
+            G = 2.0 * (self.L @ U - B) + 2.0 * (self.C.T @ (weighted * (self.C @ U - t)))
+            act, g, d1, d2 = self._barrier_terms(U, J)
+            if len(act):
+                np.add.at(G, self.tets[act].ravel(), (d1[:, None, None] * g).reshape(-1, 3))
+            d = self._direction(-G, act, g, d2)
+            slope = float((G * d).sum())
+            full = float(np.abs(d).max()) / self.diag
+            if slope >= 0 or full < 1e-3 * tol:  # no descent left, or nothing left to move (round-off)
+                moved = full
+                break
+            alpha = 1.0
+            while True:
+                trial = U + alpha * d
+                E_t, J_t, B_t = self._evaluate(trial, t)
+                if E_t <= E + 1e-4 * alpha * slope:  # an inverted trial has E_t = inf: refused
+                    break
+                alpha *= 0.5
+                if alpha < 1e-12:
+                    break
+            if alpha < 1e-12:
+                moved = 0.0
+                break
+            moved = alpha * full
+            U, E, J, B = trial, E_t, J_t, B_t
+            if moved < tol:
+                break
+        residual = 0.0
+        surface = self.C @ U
+        for rows, size in zip(self._handle_rows, self._region_size):
+            residual = max(residual, float(np.linalg.norm(surface[rows] - t[rows], axis=1).max()) / size)
+        reflected = [name for name, A in zip(self.names, transforms) if np.linalg.det(_matrix(A)[:3, :3]) < 0]
+        return SurfacePose(U, it, moved < tol, time.perf_counter() - t0, float(J.min()), residual,
+                           int((J < self.j).sum()), reflected)
