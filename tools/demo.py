@@ -77,6 +77,50 @@ def bent_rod_pose(point, bend: float):
     return (cx + x * math.cos(angle), y, cz - x * math.sin(angle)), angle
 
 
+# The armature rig (--rig armature): a two-bone chain up the arm, the joint at the middle handle.
+ARM_JOINT_Z = 0.5 * (MIDDLE_BAND[0] + MIDDLE_BAND[1])
+ARM_TOP_Z = 1.0
+
+
+def rig_handles_with_bones(bpy, middle, tip, frames: int):
+    """A two-bone Armature up the arm ("Lower": from the base's top to the middle handle, "Upper": on
+    to the arm's top), the middle handle parented to the Lower bone and the tip handle to the Upper
+    one (Blender's Parent to Bone, keeping where they are), the bones' rotations keyed from straight
+    (frame 1) to the bend (frame `frames`). The bones move the handles; ARAP moves the cage between
+    them and the pin, fold-free. Returns the armature object."""
+    from mathutils import Matrix
+
+    data = bpy.data.armatures.new("Arm Rig")
+    rig = bpy.data.objects.new("Arm Rig", data)
+    bpy.context.scene.collection.objects.link(rig)
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    lower = data.edit_bones.new("Lower")
+    lower.head, lower.tail = (0.0, 0.0, PIN_TOP), (0.0, 0.0, ARM_JOINT_Z)
+    upper = data.edit_bones.new("Upper")
+    upper.head, upper.tail = (0.0, 0.0, ARM_JOINT_Z), (0.0, 0.0, ARM_TOP_Z)
+    upper.parent, upper.use_connect = lower, True
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.context.view_layer.update()
+    for handle, bone in ((middle, "Lower"), (tip, "Upper")):
+        world = handle.matrix_world.copy()
+        handle.parent, handle.parent_type, handle.parent_bone = rig, "BONE", bone
+        handle.matrix_parent_inverse = Matrix.Identity(4)
+        bpy.context.view_layer.update()
+        handle.matrix_world = world  # where it was: its rest is the straight arm
+    # The arm's bend shared by the two joints: the top goes towards -X (negative about +Y).
+    share = {"Lower": 0.45, "Upper": 0.55}
+    for name, part in share.items():
+        pose_bone = rig.pose.bones[name]
+        pose_bone.rotation_mode = "XYZ"
+        for frame, bend in ((1, 0.0), (frames, BEND_RADIANS)):
+            # A vertical bone (roll 0) has its local Y along world +Z and its local Z along world -Y:
+            # the bend towards -X (negative about world +Y) is positive about the bone's local Z.
+            pose_bone.rotation_euler = (0.0, 0.0, bend * part)
+            pose_bone.keyframe_insert("rotation_euler", frame=frame)
+    return rig
+
+
 # --------------------------------------------------------------------------- parent
 
 
@@ -176,6 +220,9 @@ def parse_args(argv):
     p.add_argument("--extract-resolution", type=int, default=256, help="extraction grid per axis (default 256)")
     p.add_argument("--render-size", type=int, default=320, help="rendered frame size in pixels (default 320)")
     p.add_argument("--frames", type=int, default=24, help="frames of the bend animation (default 24)")
+    p.add_argument("--rig", choices=("handles", "armature"), default="handles",
+                   help="what animates the bend: the handles' own keyframes (default), or a two-bone armature the "
+                        "handles are parented to (bones keyed, ARAP in between)")
     p.add_argument("--quick", action="store_true",
                    help="a reduced run for tests: 40 views of 64 px, 400 training steps, 96^3 extraction, 6 frames of 64 px")
     p.add_argument("--child", choices=("author", "render"), help=argparse.SUPPRESS)
@@ -234,7 +281,7 @@ def main(argv=None) -> int:
     blend = out / "demo.blend"
     config = {"out": str(out), "blend": str(blend), "checkpoint": str(run_dir / "nerf.ckpt"),
               "extract_resolution": args.extract_resolution, "render_size": args.render_size,
-              "frames": args.frames}
+              "frames": args.frames, "rig": args.rig}
     config_path = out / "demo_config.json"
     config_path.write_text(json.dumps(config, indent=1))
     with stage("author", "Load NeRF, Extract Mesh, Build Cage, pin the base, two handles, keyframes -> demo.blend"):
@@ -335,11 +382,14 @@ def author(config: dict) -> int:
     _select_vertices(bpy, surface, regions["pin"])
     _check(bpy.ops.nerf_deform.pin_selection(), "Pin Selection")
     frames = config["frames"]
+    handles = {}
     for name in ("Middle", "Tip"):
         _select_vertices(bpy, surface, regions[name])
         _check(bpy.ops.nerf_deform.add_handle(), f"Add Handle ({name})")
-        handle = bpy.context.active_object
+        handles[name] = handle = bpy.context.active_object
         handle.name = f"{name} Handle"
+        if config.get("rig", "handles") != "handles":
+            continue
         rest = tuple(handle.location)
         for frame, bend in ((1, 0.0), (frames, BEND_RADIANS)):
             location, angle = bent_rod_pose(rest, bend)
@@ -348,6 +398,9 @@ def author(config: dict) -> int:
             handle.keyframe_insert("location", frame=frame)
             handle.keyframe_insert("rotation_euler", frame=frame)
     bpy.ops.object.mode_set(mode="OBJECT")
+    if config.get("rig") == "armature":
+        rig = rig_handles_with_bones(bpy, handles["Middle"], handles["Tip"], frames)
+        print(f"    armature {rig.name}: bones {', '.join(b.name for b in rig.data.bones)} keyed; the handles follow them", flush=True)
 
     # The camera of the default scene, a little further out so the bent arm stays in frame.
     cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
