@@ -29,7 +29,8 @@ def test_a_script_edits_the_lower_half_of_the_sphere(addon, sphere_nerf):
     bpy.context.view_layer.update()
     rest, _tets = load_cage(cage.data)
     moved = deformation.deformed_cage(nerf, bpy.context.evaluated_depsgraph_get(), jobs.worker(bpy.context))
-    assert np.abs(moved[pins] - rest[pins]).max() < 1e-6  # the cut stays
+    # The cut stays (soft pins: within a thousandth of the cage's size).
+    assert np.linalg.norm(moved[pins] - rest[pins], axis=1).max() < 1e-3 * np.linalg.norm(np.ptp(rest, axis=0))
     assert (rest[:, 2] - moved[:, 2]).max() > 0.2  # the bottom went down
     with pytest.raises(RuntimeError, match="is not a vertex of"):
         api.add_handle(nerf, [len(surface.data.vertices) + 5])

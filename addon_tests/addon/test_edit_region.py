@@ -214,7 +214,8 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
     # The cage's side at the cut and the rim around it, far from its bottom.
     assert rest[pins, 2].min() > -0.5 and rest[:, 2].min() < -0.8 and np.abs(rest[pins, 2]).mean() < 0.25
 
-    # A handle on the bottom moved down: ARAP keeps the pinned cage vertices at rest, the cut stays.
+    # A handle on the bottom moved down: ARAP keeps the pinned cage vertices at rest (soft pins: within
+    # a thousandth of the cage's size), the cut stays.
     bottom = np.flatnonzero(co[:, 2] < -0.6)
     select_in_edit_mode(bpy, surface, bottom)
     assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
@@ -229,7 +230,7 @@ def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(a
         return deformed, carried - co
 
     deformed, moved = solved()
-    assert np.abs(deformed[pins] - rest[pins]).max() < 1e-6
+    assert np.linalg.norm(deformed[pins] - rest[pins], axis=1).max() < 1e-3 * np.linalg.norm(np.ptp(rest, axis=0))
     assert np.allclose(moved[bottom, 2], -0.3, atol=0.03)
     assert np.abs(moved[cut]).max() < 0.05
 

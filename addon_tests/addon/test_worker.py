@@ -204,13 +204,14 @@ def test_shared_content_travels_once_and_again_after_a_restart(worker):
     result, out = worker.call("solve", pose, shared=shared)
     assert sorted(loads) == ["cage", "embedding", "regions"] and "precompute_s" in result
     first_bytes = worker.sent[-1][1]
-    assert np.allclose(out["deformed_vertices"][top, 2], V[top, 2] + 0.3, atol=1e-6)
+    # The handle pulls its region (soft, surface_arap): within a thousandth of the cage's size.
+    assert np.allclose(out["deformed_vertices"][top, 2], V[top, 2] + 0.3, atol=1e-3 * np.linalg.norm(np.ptp(V, axis=0)))
 
     loads.clear()
     result, out2 = worker.call("solve", {**pose, "transforms": [_lift(0.5)]}, shared=shared)
     assert loads == [] and "precompute_s" not in result  # nothing re-sent, factorization reused
     assert worker.sent[-1][1] < 2000 < first_bytes
-    assert np.allclose(out2["deformed_vertices"][top, 2], V[top, 2] + 0.5, atol=1e-6)
+    assert np.allclose(out2["deformed_vertices"][top, 2], V[top, 2] + 0.5, atol=1e-3 * np.linalg.norm(np.ptp(V, axis=0)))
     # The preview's answer: the embedded surface itself (here: the cage's own vertices).
     _result, surf = worker.call("solve", {**pose, "answer": "surface"}, shared=shared)
     assert surf["surface"].dtype == np.float32 and np.allclose(surf["surface"], out["deformed_vertices"], atol=1e-5)
