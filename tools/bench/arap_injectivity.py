@@ -9,7 +9,7 @@ invert), on the demo's own cage, regions and handle poses.
 
 The poses come from demo.blend as a render reads them: the bpy module opens it with the demo's
 private Blender user folder (the extension enabled, as `tools/demo.py`'s render stage starts), and
-for every frame the add-on's own `deformation.handle_pose` gives the handles' transforms (NeRF
+for every frame the add-on's own `handle_pose` (addon/deform/poses.py) gives the handles' transforms (NeRF
 frame) and the shared content (cage, embedding, regions) a render request carries. `--save-poses`
 keeps them in an .npz, and `--poses` reads one instead of the .blend (no bpy needed).
 

@@ -116,11 +116,9 @@ def regions_to_cage(embedding, surface_regions: list, n_cage_vertices: int, name
     return out
 
 
-def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, power: float = 2.0) -> np.ndarray:
-    """Baseline deformer: each vertex blends the regions' affines by inverse distance to each region.
-
-    What ARAP is compared against (the seed's cube check); not used for editing.
-    """
+def blend_weights(rest_vertices: np.ndarray, regions: list, power: float = 2.0) -> np.ndarray:
+    """(R, N) weights of the linear blend: each vertex weighs the regions by inverse distance to each
+    (a region's own vertices take its affine alone); columns sum to 1. Depends on the regions only."""
     from scipy.spatial import cKDTree
 
     V = np.asarray(rest_vertices, dtype=np.float64)
@@ -130,9 +128,20 @@ def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, pow
     for i, r in enumerate(regs):
         w[:, r] = 0.0
         w[i, r] = 1.0
-    w /= w.sum(0, keepdims=True)
-    moved = np.stack([apply_affine(V, A) for A in transforms])  # (R, N, 3)
-    return np.einsum("rn,rnc->nc", w, moved)
+    return w / w.sum(0, keepdims=True)
+
+
+def blend(rest_vertices: np.ndarray, weights: np.ndarray, transforms: list) -> np.ndarray:
+    """The vertices moved by the affines blended with `blend_weights`."""
+    moved = np.stack([apply_affine(rest_vertices, A) for A in transforms])  # (R, N, 3)
+    return np.einsum("rn,rnc->nc", weights, moved)
+
+
+def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, power: float = 2.0) -> np.ndarray:
+    """Baseline deformer: each vertex blends the regions' affines by inverse distance to each region.
+
+    What ARAP is compared against (the seed's cube check), and ARAP's first guess."""
+    return blend(rest_vertices, blend_weights(rest_vertices, regions, power), transforms)
 
 
 # ---------------------------------------------------------------------------

@@ -44,7 +44,7 @@ import numpy as np
 from ..errors import EngineError
 from . import arap_kernels
 from .arap_kernels import _E0, _E1
-from .deform import _matrix, check_disjoint, linear_blend, tet_components
+from .deform import _matrix, blend, blend_weights, check_disjoint, tet_components
 
 WOODBURY_TETS = 48  # up to this many tets below the threshold, their Hessian terms enter by Woodbury
 
@@ -165,32 +165,60 @@ class SurfaceArap:
             rows_w.append(np.tile([1.0, 0.0, 0.0, 0.0], (len(fixed), 1)))
             row_weight.append(np.full(len(fixed), unit))
             rest_points.append(V[fixed])
-        self._rows_c = np.concatenate(rows_c)
-        self._rows_w = np.concatenate(rows_w)
-        self._row_weight = np.concatenate(row_weight)
+        rows_c, rows_w, row_weight = np.concatenate(rows_c), np.concatenate(rows_w), np.concatenate(row_weight)
         self._rest_points = np.concatenate(rest_points)
-        k = len(self._rows_c)
-        self.C = sp.csr_matrix((self._rows_w.ravel(), (np.repeat(np.arange(k), 4), self._rows_c.ravel())), shape=(k, n))
-        self.A = (self.L + self.C.T @ sp.diags(self._row_weight) @ self.C).tocsc()
+        k = len(rows_c)
+        self.C = sp.csr_matrix((rows_w.ravel(), (np.repeat(np.arange(k), 4), rows_c.ravel())), shape=(k, n))
+        weighted = sp.diags(row_weight) @ self.C
+        self.Q = (self.C.T @ weighted).tocsr()  # the constraints' quadratic form on the cage: C^T W C
+        self.A = (self.L + self.Q).tocsc()
+        # The pulls in displacement form (D = U - rest; a row's target displacement is t_k - c_k.rest,
+        # 0 for every pin), reduced to the cage's vertices once, so a frame costs O(cage), not O(rows):
+        # for a handle with affine x -> x R^T + a, sum_k w_k |c_k D - (p_k M + a)|^2 with M = R^T - I
+        # = D.QD - 2 D.(G_h M + g_h a^T) + tr(M^T S_h M) + 2 s_h.(M a) + w_h |a|^2.
+        self._pull = []
+        for rows in self._handle_rows:
+            P, W_h = self._rest_points[rows], weighted[rows]
+            self._pull.append((np.asarray(W_h.T @ P), np.asarray(W_h.sum(0)).ravel(),
+                               P.T @ (row_weight[rows, None] * P), P.T @ row_weight[rows], float(row_weight[rows].sum())))
+        # Which cage vertices each handle drives in the first guess (the ones its surface leans on most).
+        lean = np.stack([np.asarray(self.C[rows].sum(0)).ravel() for rows in self._handle_rows]) if self._handle_rows else np.zeros((0, n))
+        owner = np.where(lean.max(0) > 0, lean.argmax(0), -1) if len(lean) else np.full(n, -1)
+        guess_regions = [np.flatnonzero(owner == h) for h in range(len(self._handle_rows))]
+        held = np.flatnonzero(np.asarray(abs(self.C).sum(0)).ravel() > 0)
+        still = np.setdiff1d(held, np.flatnonzero(owner >= 0))
+        # Per piece of the cage: its vertices, the blend weights of the regions on it (pose-independent,
+        # so made once), and which affine each region takes (a handle's index, or -1: at rest).
+        self._guess = []
+        groups = [(r, h) for h, r in enumerate(guess_regions) if len(r)] + ([(still, -1)] if len(still) else [])
+        for piece in np.unique(pieces):
+            own = np.flatnonzero(pieces == piece)
+            local = np.full(n, -1, dtype=np.int64)
+            local[own] = np.arange(len(own))
+            mine = [(local[r[pieces[r] == piece]], h) for r, h in groups]
+            mine = [(r, h) for r, h in mine if len(r)]
+            if mine and any(h >= 0 for _, h in mine):
+                self._guess.append((own, blend_weights(V[own], [r for r, _ in mine]), [h for _, h in mine]))
         try:
             self._lu = splu(self.A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
         except RuntimeError as e:
             raise EngineError(f"the cage pose's system is singular ({e}); is the cage degenerate?") from e
-        self._pieces = pieces
         self.precompute_s = time.perf_counter() - t0
 
     # -- the energy ---------------------------------------------------------------------------
-    def targets(self, transforms: list) -> np.ndarray:
-        """(k, 3) the constraint rows' targets: handles' points moved by their affines, the rest at rest."""
+    def _pulls(self, transforms: list) -> tuple[np.ndarray, float]:
+        """(b, c): the handles' pulls this frame as D.QD - 2 D.b + c (D = U - rest)."""
         if len(transforms) != len(self._handle_rows):
             raise EngineError(f"{len(transforms)} handle transforms for {len(self._handle_rows)} handles")
-        t = self._rest_points.copy()
-        for rows, A in zip(self._handle_rows, transforms):
+        b, c = np.zeros_like(self.rest), 0.0
+        for (G, g, S, s, w), A in zip(self._pull, transforms):
             A = _matrix(A)
-            t[rows] = self._rest_points[rows] @ A[:3, :3].T + A[:3, 3]
-        return t
+            M, a = A[:3, :3].T - np.eye(3), A[:3, 3]
+            b += G @ M + np.outer(g, a)
+            c += float(np.trace(M.T @ S @ M) + 2.0 * s @ (M @ a) + w * (a @ a))
+        return b, c
 
-    def _evaluate(self, U: np.ndarray, t: np.ndarray):
+    def _evaluate(self, U: np.ndarray, pulls):
         """(E, J, B): the energy (inf when a tet has J <= 0), det F per tet, ARAP's right-hand side at U."""
         J = tet_dets(U, self.tets) / self.det0
         if not (J > 0).all():
@@ -199,8 +227,8 @@ class SurfaceArap:
         arap_kernels.arap_local(U, self.tets, self._W, self._E, self._corner, self._tet_energy)
         B = np.empty_like(U)
         arap_kernels.gather_rhs(self._corner, self._slot_start, self._slots, B)
-        r = self.C @ U - t
-        E = float(self._tet_energy.sum()) + float((self._row_weight * (r * r).sum(1)).sum())
+        D, (b, c) = U - self.rest, pulls
+        E = float(self._tet_energy.sum()) + float((D * (self.Q @ D - 2.0 * b)).sum()) + c
         E += self.kappa * float((self.vol0 * barrier(J, self.j)).sum())
         return E, J, B
 
@@ -271,29 +299,9 @@ class SurfaceArap:
         """The linear blend of the handles' affines (pins at rest), per piece of the cage, pulled back
         towards the rest cage until every tet keeps J >= j / 2: flip-free, from the pose alone."""
         mats = [_matrix(A) for A in transforms]
-        centres = [self.C[rows].T @ np.full(len(rows), 1.0 / len(rows)) for rows in self._handle_rows]
-        # Each handle drives the cage vertices its region's surface leans on most.
-        owner = np.full(len(self.rest), -1)
-        if centres:
-            weight = np.stack(centres)  # (handles, n)
-            owner = np.where(weight.max(0) > 0, weight.argmax(0), -1)
-        regions = [np.flatnonzero(owner == h) for h in range(len(mats))]
-        regions = [(r, A) for r, A in zip(regions, mats) if len(r)]
-        if not regions:
-            return self.rest.copy()
-        held = np.flatnonzero(np.asarray(abs(self.C).sum(0)).ravel() > 0)
-        still = np.setdiff1d(held, np.concatenate([r for r, _ in regions]))
-        blend_regions = [r for r, _ in regions] + ([still] if len(still) else [])
-        blend_mats = [A for _, A in regions] + ([np.eye(4)] if len(still) else [])
         start = np.array(self.rest, copy=True)
-        for piece in np.unique(self._pieces):
-            own = np.flatnonzero(self._pieces == piece)
-            local = np.full(len(self.rest), -1, dtype=np.int64)
-            local[own] = np.arange(len(own))
-            mine = [(local[r[self._pieces[r] == piece]], A) for r, A in zip(blend_regions, blend_mats)]
-            mine = [(r, A) for r, A in mine if len(r)]
-            if mine:
-                start[own] = linear_blend(self.rest[own], [r for r, _ in mine], [A for _, A in mine])
+        for own, weights, which in self._guess:
+            start[own] = blend(self.rest[own], weights, [mats[h] if h >= 0 else np.eye(4) for h in which])
         D = start - self.rest
 
         def ok(s):
@@ -311,16 +319,15 @@ class SurfaceArap:
         """The cage posed by one 4x4 affine per handle (NeRF frame). Stops when a step moves no vertex
         more than `tol` x the cage's diagonal, after at most `max_iter` iterations."""
         t0 = time.perf_counter()
-        t = self.targets(transforms)
+        pulls = self._pulls(transforms)
         U = self._first_guess(transforms)
-        E, J, B = self._evaluate(U, t)
+        E, J, B = self._evaluate(U, pulls)
         if not np.isfinite(E):
             raise EngineError("internal: the cage pose started from a configuration with an inverted tet")
         self._columns = {}
-        weighted = self._row_weight[:, None]
         it, moved = 0, np.inf
         for it in range(1, max_iter + 1):
-            G = 2.0 * (self.L @ U - B) + 2.0 * (self.C.T @ (weighted * (self.C @ U - t)))
+            G = 2.0 * (self.L @ U - B) + 2.0 * (self.Q @ (U - self.rest) - pulls[0])
             act, g, d1, d2 = self._barrier_terms(U, J)
             if len(act):
                 np.add.at(G, self.tets[act].ravel(), (d1[:, None, None] * g).reshape(-1, 3))
@@ -333,7 +340,7 @@ class SurfaceArap:
             alpha = 1.0
             while True:
                 trial = U + alpha * d
-                E_t, J_t, B_t = self._evaluate(trial, t)
+                E_t, J_t, B_t = self._evaluate(trial, pulls)
                 if E_t <= E + 1e-4 * alpha * slope:  # an inverted trial has E_t = inf: refused
                     break
                 alpha *= 0.5
@@ -347,9 +354,10 @@ class SurfaceArap:
             if moved < tol:
                 break
         residual = 0.0
-        surface = self.C @ U
-        for rows, size in zip(self._handle_rows, self._region_size):
-            residual = max(residual, float(np.linalg.norm(surface[rows] - t[rows], axis=1).max()) / size)
+        for rows, size, A in zip(self._handle_rows, self._region_size, transforms):
+            A = _matrix(A)
+            target = self._rest_points[rows] @ A[:3, :3].T + A[:3, 3]
+            residual = max(residual, float(np.linalg.norm(self.C[rows] @ U - target, axis=1).max()) / size)
         reflected = [name for name, A in zip(self.names, transforms) if np.linalg.det(_matrix(A)[:3, :3]) < 0]
         return SurfacePose(U, it, moved < tol, time.perf_counter() - t0, float(J.min()), residual,
                            int((J < self.j).sum()), reflected)
