@@ -13,14 +13,19 @@ from ..train import training_preview
 from ..train.operators import NERFDEFORM_OT_train_nerf
 
 
-class NERFDEFORM_PT_composite(bpy.types.Panel):
-    bl_label = "Composite"
-    bl_idname = "NERFDEFORM_PT_composite"
+class _StagePanel:
+    """Where the stages' sub-panels sit: closed, under the sidebar's NeRF Deform tab."""
+
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "NeRF Deform"
     bl_parent_id = "NERFDEFORM_PT_main"
     bl_options = {"DEFAULT_CLOSED"}
+
+
+class NERFDEFORM_PT_composite(_StagePanel, bpy.types.Panel):
+    bl_label = "Composite"
+    bl_idname = "NERFDEFORM_PT_composite"
 
     def draw(self, context):
         layout = self.layout
@@ -30,14 +35,9 @@ class NERFDEFORM_PT_composite(bpy.types.Panel):
             layout.label(text=f"Meshes: {mesh_scene.name} ({mesh_scene.render.engine.title()})", icon="SCENE_DATA")
 
 
-class NERFDEFORM_PT_train(bpy.types.Panel):
+class NERFDEFORM_PT_train(_StagePanel, bpy.types.Panel):
     bl_label = "Train"
     bl_idname = "NERFDEFORM_PT_train"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NeRF Deform"
-    bl_parent_id = "NERFDEFORM_PT_main"
-    bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
         t = context.scene.nerf_deform_training
@@ -56,14 +56,9 @@ class NERFDEFORM_PT_train(bpy.types.Panel):
             setattr(op, name, getattr(t, name))
 
 
-class NERFDEFORM_PT_capture(bpy.types.Panel):
+class NERFDEFORM_PT_capture(_StagePanel, bpy.types.Panel):
     bl_label = "Capture Dataset"
     bl_idname = "NERFDEFORM_PT_capture"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NeRF Deform"
-    bl_parent_id = "NERFDEFORM_PT_main"
-    bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
         s = context.scene.nerf_deform_capture
