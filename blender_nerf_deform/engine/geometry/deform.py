@@ -160,7 +160,38 @@ def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, pow
 # tools/bench/geometry_arap.py runs them side by side.
 # ---------------------------------------------------------------------------
 
-# Edges of a tet in the column order of igl.cotmatrix_entries.
+class ElementsEnergy:
+    """ARAP's elements energy on a tet mesh, what both solvers share (ArapDeformer here,
+    surface_arap.SurfaceArap): libigl's cotangent weights per tet edge, the rest edge vectors, the
+    energy's quadratic form L = sum w |u_i - u_j|^2 (= -igl.cotmatrix), and which (tet, corner) slots
+    touch each vertex, so the right-hand side is gathered per vertex in parallel."""
+
+    def __init__(self, vertices: np.ndarray, tets: np.ndarray):
+        import igl
+        import scipy.sparse as sp
+
+        V, T, n = vertices, tets, len(vertices)
+        self.tets = T
+        self.W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)  # (M, 6)
+        self.E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])  # (M, 6, 3) rest edge vectors
+        i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self.W.ravel()
+        self.L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))),
+                               shape=(n, n)).tocsr()
+        self.slots = np.argsort(T.ravel(), kind="stable")
+        self.slot_start = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(T.ravel(), minlength=n), out=self.slot_start[1:])
+        self.corner = np.empty((len(T), 4, 3))
+        self.tet_energy = np.empty(len(T))  # per tet, at the last `local` call
+
+    def local(self, U: np.ndarray, rhs: np.ndarray | None = None) -> np.ndarray:
+        """The local step at U (C-contiguous float64): each tet's best rotation and energy
+        (`tet_energy`), and the global step's right-hand side it implies (into `rhs` when given)."""
+        arap_kernels.arap_local(U, self.tets, self.W, self.E, self.corner, self.tet_energy)
+        rhs = np.empty_like(U) if rhs is None else rhs
+        arap_kernels.gather_rhs(self.corner, self.slot_start, self.slots, rhs)
+        return rhs
+
+
 @dataclass
 class ArapResult:
     vertices: np.ndarray
@@ -221,19 +252,13 @@ class ArapDeformer:
         self.U: np.ndarray | None = None  # last result (warm start of `step`)
 
     def _precompute(self):
-        """Cotangent weights per tet edge, rest edge vectors, and the LU of the constrained system."""
-        import igl
-        import scipy.sparse as sp
+        """The elements energy's pieces, and the LU of the constrained system."""
         from scipy.sparse.csgraph import connected_components
         from scipy.sparse.linalg import splu
 
-        V, T, n = self.rest, self.tets, len(self.rest)
-        self._W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)  # (M, 6)
-        self._E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])  # (M, 6, 3) rest edge vectors
-        # The energy's quadratic form sum w |u_i - u_j|^2 (= -igl.cotmatrix), assembled from the same weights.
-        i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self._W.ravel()
-        L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))), shape=(n, n)).tocsr()
-        self._L = L
+        n = len(self.rest)
+        self._elements = ElementsEnergy(self.rest, self.tets)
+        L = self._elements.L
         constrained = np.zeros(n, dtype=bool)
         constrained[self.b] = True
         self._free = np.flatnonzero(~constrained)
@@ -252,24 +277,15 @@ class ArapDeformer:
                 self._lu = splu(Lf[:, self._free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
             except RuntimeError as e:
                 raise EngineError(f"ARAP system is singular ({e}); is the cage degenerate?") from e
-        # Which (tet, corner) slots touch each vertex, to gather the right-hand side in parallel.
-        self._slots = np.argsort(T.ravel(), kind="stable")
-        self._start = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(T.ravel(), minlength=n), out=self._start[1:])
-        self._corner = np.empty((len(T), 4, 3))
-        self._tet_energy = np.empty(len(T))
         self._B = np.empty((n, 3))
-
-    def _local(self, U: np.ndarray) -> None:
-        arap_kernels.arap_local(U, self.tets, self._W, self._E, self._corner, self._tet_energy)
 
     def energy(self, vertices: np.ndarray) -> float:
         """ARAP (elements) energy of `vertices`: sum over tets and edges of w |u_i - u_j - R_t (v_i - v_j)|^2
         with each tet's best rotation R_t (0 for a rigid motion). Needs the numba backend."""
         if self.backend != "numba":
             raise EngineError("ARAP energy is computed by the numba backend")
-        self._local(np.ascontiguousarray(vertices, dtype=np.float64))
-        return float(self._tet_energy.sum())
+        self._elements.local(np.ascontiguousarray(vertices, dtype=np.float64))
+        return float(self._elements.tet_energy.sum())
 
     def constraints(self, transforms: list) -> np.ndarray:
         """Target positions of the constrained vertices (handles moved by their affines, pins at rest)."""
@@ -282,8 +298,7 @@ class ArapDeformer:
     def _one_iteration(self, bc: np.ndarray, U: np.ndarray, fixed_rhs) -> np.ndarray:
         if self.backend == "igl":
             return self._igl.arap_solve(bc, self.data, U)
-        self._local(U)  # best rotation per tet for U, and the right-hand side it implies
-        arap_kernels.gather_rhs(self._corner, self._start, self._slots, self._B)
+        self._elements.local(U, self._B)  # best rotation per tet for U, and the right-hand side it implies
         U_new = np.empty_like(U)
         U_new[self.b] = bc
         if self._lu is not None:

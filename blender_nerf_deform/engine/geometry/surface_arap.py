@@ -42,9 +42,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import EngineError
-from . import arap_kernels
-from .arap_kernels import _E0, _E1
-from .deform import _matrix, blend, blend_weights, check_disjoint, tet_components
+from .barycentric import signed_volumes
+from .deform import ElementsEnergy, _matrix, blend, blend_weights, check_disjoint, tet_components
 
 WOODBURY_TETS = 48  # up to this many tets below the threshold, their Hessian terms enter by Woodbury
 
@@ -59,13 +58,6 @@ class SurfacePose:
     surface_residual: float  # largest distance of a handle's surface vertex from its target, / that region's size
     barrier_tets: int  # tets below the barrier's threshold in the result (where the barrier shaped the pose)
     reflected: list = field(default_factory=list)  # names of handles whose affine is a reflection
-
-
-def tet_dets(U: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """(M,) det[b-a, c-a, d-a] of each tet (6 x signed volume)."""
-    P = U[T]
-    e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
-    return np.einsum("mi,mi->m", e1, np.cross(e2, e3))
 
 
 def barrier(J: np.ndarray, j: float) -> np.ndarray:
@@ -96,7 +88,6 @@ class SurfaceArap:
                  pin_points: np.ndarray | None = None, cage_pins: np.ndarray | None = None,
                  names: list[str] | None = None, stiffness: float = 100.0, threshold: float = 0.1,
                  barrier_stiffness: float = 1000.0):
-        import igl
         import scipy.sparse as sp
         from scipy.sparse.linalg import splu
 
@@ -108,23 +99,13 @@ class SurfaceArap:
             raise EngineError(f"the det F threshold must lie in (0, 1), got {threshold}")
         self.rest, self.tets, self.j = V, T, float(threshold)
         self.diag = float(np.linalg.norm(np.ptp(V, axis=0)))
-        self.det0 = tet_dets(V, T)
-        if (self.det0 <= 0).any():
-            raise EngineError(f"the rest cage has {int((self.det0 <= 0).sum())} tets that are not positively oriented")
-        self.vol0 = self.det0 / 6.0
+        self.vol0 = signed_volumes(V, T)
+        if (self.vol0 <= 0).any():
+            raise EngineError(f"the rest cage has {int((self.vol0 <= 0).sum())} tets that are not positively oriented")
         self.kappa = float(barrier_stiffness) / self.j
 
-        # ARAP's elements energy: cotangent weights per tet edge, rest edges, its Laplacian.
-        self._W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)
-        self._E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])
-        i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self._W.ravel()
-        self.L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))),
-                               shape=(n, n)).tocsr()
-        self._slots = np.argsort(T.ravel(), kind="stable")
-        self._slot_start = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(T.ravel(), minlength=n), out=self._slot_start[1:])
-        self._corner = np.empty((len(T), 4, 3))
-        self._tet_energy = np.empty(len(T))
+        self._elements = ElementsEnergy(V, T)
+        self.L = self._elements.L
 
         # The constraint rows: the handles' surface vertices, the pinned ones, the cut's cage vertices.
         self.names = list(names or [f"handle {k}" for k in range(len(handle_points))])
@@ -220,15 +201,13 @@ class SurfaceArap:
 
     def _evaluate(self, U: np.ndarray, pulls):
         """(E, J, B): the energy (inf when a tet has J <= 0), det F per tet, ARAP's right-hand side at U."""
-        J = tet_dets(U, self.tets) / self.det0
+        J = signed_volumes(U, self.tets) / self.vol0
         if not (J > 0).all():
             return np.inf, J, None
         U = np.ascontiguousarray(U)
-        arap_kernels.arap_local(U, self.tets, self._W, self._E, self._corner, self._tet_energy)
-        B = np.empty_like(U)
-        arap_kernels.gather_rhs(self._corner, self._slot_start, self._slots, B)
+        B = self._elements.local(U)
         D, (b, c) = U - self.rest, pulls
-        E = float(self._tet_energy.sum()) + float((D * (self.Q @ D - 2.0 * b)).sum()) + c
+        E = float(self._elements.tet_energy.sum()) + float((D * (self.Q @ D - 2.0 * b)).sum()) + c
         E += self.kappa * float((self.vol0 * barrier(J, self.j)).sum())
         return E, J, B
 
@@ -239,7 +218,7 @@ class SurfaceArap:
         e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
         g = np.empty((len(act), 4, 3))
         g[:, 1], g[:, 2], g[:, 3] = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
-        g[:, 1:] /= self.det0[act, None, None]
+        g[:, 1:] /= 6.0 * self.vol0[act, None, None]  # d det / dU over the rest det (J = det / det0)
         g[:, 0] = -g[:, 1:].sum(1)
         d1, d2 = _barrier_d1_d2(J[act], self.j)
         w = self.kappa * self.vol0[act]
@@ -305,7 +284,7 @@ class SurfaceArap:
         D = start - self.rest
 
         def ok(s):
-            return bool((tet_dets(self.rest + s * D, self.tets) >= 0.5 * self.j * self.det0).all())
+            return bool((signed_volumes(self.rest + s * D, self.tets) >= 0.5 * self.j * self.vol0).all())
 
         if ok(1.0):
             return start
