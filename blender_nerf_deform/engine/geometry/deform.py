@@ -137,6 +137,33 @@ def blend(rest_vertices: np.ndarray, weights: np.ndarray, transforms: list) -> n
     return np.einsum("rn,rnc->nc", weights, moved)
 
 
+class PieceBlend:
+    """The linear blend of the regions' affines, piece by piece of the cage: a piece (one object of
+    several edit regions) blends only the regions that lie on it, so a handle on one object does not
+    start another one off its rest. The weights depend on the regions only, so they are made once;
+    a piece none of whose regions is `moving` (pins only) is left exactly at rest."""
+
+    def __init__(self, rest_vertices: np.ndarray, pieces: np.ndarray, regions: list, moving: list | None = None):
+        self.rest = np.asarray(rest_vertices, dtype=np.float64)
+        moving = [True] * len(regions) if moving is None else list(moving)
+        self._pieces = []  # (its vertices, blend weights, which region's affine each weight row takes)
+        for piece in np.unique(pieces):
+            own = np.flatnonzero(pieces == piece)
+            local = np.full(len(self.rest), -1, dtype=np.int64)
+            local[own] = np.arange(len(own))
+            mine = [(local[r[pieces[r] == piece]], k) for k, r in enumerate(regions)]
+            mine = [(r, k) for r, k in mine if len(r)]
+            if any(moving[k] for _, k in mine):
+                self._pieces.append((own, blend_weights(self.rest[own], [r for r, _ in mine]), [k for _, k in mine]))
+
+    def __call__(self, transforms: list) -> np.ndarray:
+        """The blended vertices for one 4x4 affine per region."""
+        out = np.array(self.rest, copy=True)
+        for own, weights, which in self._pieces:
+            out[own] = blend(self.rest[own], weights, [transforms[k] for k in which])
+        return out
+
+
 def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, power: float = 2.0) -> np.ndarray:
     """Baseline deformer: each vertex blends the regions' affines by inverse distance to each region.
 
@@ -320,25 +347,10 @@ class ArapDeformer:
         return U, it, step
 
     def _blended_start(self, transforms: list) -> np.ndarray:
-        """The linear blend of the handles' and pins' affines, piece by piece of the cage: a piece
-        (one object of several edit regions) blends only what lies on it, so a handle on one
-        object does not start another one off its rest."""
-        regions = self.handles + self.pins
-        mats = [_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins)
-        if not hasattr(self, "_pieces"):
-            self._pieces = tet_components(len(self.rest), self.tets)
-        if self._pieces.max() == 0:
-            return linear_blend(self.rest, regions, mats)
-        out = np.array(self.rest, dtype=np.float64, copy=True)
-        for piece in np.unique(self._pieces):
-            own = np.flatnonzero(self._pieces == piece)
-            local = np.full(len(self.rest), -1, dtype=np.int64)
-            local[own] = np.arange(len(own))
-            mine = [(local[r[self._pieces[r] == piece]], A) for r, A in zip(regions, mats)]
-            mine = [(r, A) for r, A in mine if len(r)]
-            if mine:
-                out[own] = linear_blend(self.rest[own], [r for r, _ in mine], [A for _, A in mine])
-        return out
+        """The linear blend of the handles' and pins' affines, piece by piece of the cage (PieceBlend)."""
+        if getattr(self, "_blend", None) is None:
+            self._blend = PieceBlend(self.rest, tet_components(len(self.rest), self.tets), self.handles + self.pins)
+        return self._blend([_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins))
 
     def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None,
               strict: bool = False) -> ArapResult:

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import EngineError
 from .barycentric import signed_volumes
-from .deform import ElementsEnergy, _matrix, blend, blend_weights, check_disjoint, tet_components
+from .deform import ElementsEnergy, PieceBlend, _matrix, check_disjoint, tet_components
 
 WOODBURY_TETS = 48  # up to this many tets below the threshold, their Hessian terms enter by Woodbury
 
@@ -168,18 +168,9 @@ class SurfaceArap:
         guess_regions = [np.flatnonzero(owner == h) for h in range(len(self._handle_rows))]
         held = np.flatnonzero(np.asarray(abs(self.C).sum(0)).ravel() > 0)
         still = np.setdiff1d(held, np.flatnonzero(owner >= 0))
-        # Per piece of the cage: its vertices, the blend weights of the regions on it (pose-independent,
-        # so made once), and which affine each region takes (a handle's index, or -1: at rest).
-        self._guess = []
-        groups = [(r, h) for h, r in enumerate(guess_regions) if len(r)] + ([(still, -1)] if len(still) else [])
-        for piece in np.unique(pieces):
-            own = np.flatnonzero(pieces == piece)
-            local = np.full(n, -1, dtype=np.int64)
-            local[own] = np.arange(len(own))
-            mine = [(local[r[pieces[r] == piece]], h) for r, h in groups]
-            mine = [(r, h) for r, h in mine if len(r)]
-            if mine and any(h >= 0 for _, h in mine):
-                self._guess.append((own, blend_weights(V[own], [r for r, _ in mine]), [h for _, h in mine]))
+        # The first guess blends the handles' affines over the cage vertices each drives, the other
+        # held vertices at rest; a piece of the cage with no handle stays at rest.
+        self._guess = PieceBlend(V, pieces, guess_regions + [still], [True] * len(guess_regions) + [False])
         try:
             self._lu = splu(self.A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
         except RuntimeError as e:
@@ -277,10 +268,7 @@ class SurfaceArap:
     def _first_guess(self, transforms: list) -> np.ndarray:
         """The linear blend of the handles' affines (pins at rest), per piece of the cage, pulled back
         towards the rest cage until every tet keeps J >= j / 2: flip-free, from the pose alone."""
-        mats = [_matrix(A) for A in transforms]
-        start = np.array(self.rest, copy=True)
-        for own, weights, which in self._guess:
-            start[own] = blend(self.rest[own], weights, [mats[h] if h >= 0 else np.eye(4) for h in which])
+        start = self._guess([_matrix(A) for A in transforms] + [np.eye(4)])
         D = start - self.rest
 
         def ok(s):
