@@ -155,6 +155,11 @@ class CageBend:
         self.linear = torch.as_tensor(affine[:, :3, :3], **f32).contiguous()
         self.offset = torch.as_tensor(affine[:, :3, 3], **f32).contiguous()
         self.rotation = torch.as_tensor(rotation, **f32).contiguous()
+        # A volume sampled on a grid has no ray direction: its density scale is the isotropic part of
+        # the per-ray |A d|, |det A|^(1/3) (1 for a rigid motion and for the flat tets' constant map).
+        volume_scale = np.cbrt(np.abs(np.linalg.det(affine[:, :3, :3])))
+        volume_scale[bad] = 1.0
+        self.volume_scale = torch.as_tensor(volume_scale, **f32)
         # A flat tet holds no volume: locate among the others, and map their indices back.
         located = np.setdiff1d(np.arange(len(self.tets)), bad)
         if len(located) == 0:
@@ -242,6 +247,27 @@ class CageBend:
         if self.density_correction:
             return p, d, keep, scale
         return p, d, keep
+
+    @torch.no_grad()
+    def map_points(self, positions: torch.Tensor):
+        """Points in deformed space, no ray (a grid's samples) → (rest positions, keep, density scale,
+        rotation): `sample_transform`'s decisions (mapped through their tet, empty where vacated or
+        where the NeRF's occupancy grid is), the tet's isotropic density scale |det A|^(1/3), and the
+        rotation (N, 3, 3) that turns a deformed-space direction into rest space (identity outside)."""
+        tet = self.deformed.locate(positions).to(positions.device)
+        inside = tet >= 0
+        p = positions.clone()
+        scale = torch.ones(len(positions), dtype=positions.dtype, device=positions.device)
+        t = self.located_tets[tet[inside]]
+        p[inside] = torch.einsum("nij,nj->ni", self.linear[t], positions[inside]) + self.offset[t]
+        scale[inside] = self.volume_scale[t]
+        rotation = torch.eye(3, dtype=positions.dtype, device=positions.device).repeat(len(positions), 1, 1)
+        rotation[inside] = self.rotation[t]
+        keep = self.model.occupancy.occupied(p)
+        outside = torch.nonzero(~inside & keep).squeeze(1)
+        if len(outside):
+            keep[outside] = ~self.rest.contains(positions[outside]).to(positions.device)
+        return p, keep, scale, rotation
 
     def _locate_rest_cells(self):
         """Once per rest cage: the NeRF's occupied cells and the rest tet holding each of their 8 corners."""

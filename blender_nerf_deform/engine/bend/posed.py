@@ -3,7 +3,8 @@
 `PosedRenderer(model, rest_vertices, tets)` builds the cage's `CageBend` once
 (its rest-cage locator); `render(camera, deformed)` poses it only when the pose
 differs from the last one (a still pose over many frames is prepared once) and
-renders. Without a cage it renders the NeRF as trained.
+renders; `bake(grid, deformed)` samples the posed NeRF on a voxel grid instead
+(volume.py). Without a cage it renders the NeRF as trained.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 
 from ..nerf.renderer import render_image
 from .cage_bend import CageBend
+from .volume import bake_volume
 
 
 class PosedRenderer:
@@ -20,17 +22,28 @@ class PosedRenderer:
         self.bend = CageBend(model, rest_vertices, tets) if rest_vertices is not None else None
         self._pose: np.ndarray | None = None
 
+    def pose(self, deformed_vertices=None) -> CageBend | None:
+        """The cage's map posed at `deformed_vertices` (None: at rest, no map)."""
+        if deformed_vertices is None:
+            return None
+        if self.bend is None:
+            raise ValueError("a deformed pose needs the rest cage it deforms")
+        pose = np.asarray(deformed_vertices, dtype=np.float64)
+        if self._pose is None or self._pose.shape != pose.shape or not np.array_equal(self._pose, pose):
+            self.bend.set_deformed(pose)
+            self._pose = pose.copy()
+        return self.bend
+
     def render(self, camera, deformed_vertices=None, progress=None) -> dict:
         """`render_image`'s result, plus `inversion` (the pose's InversionReport, or None at rest)."""
-        extra = {}
-        if deformed_vertices is not None:
-            if self.bend is None:
-                raise ValueError("a deformed pose needs the rest cage it deforms")
-            pose = np.asarray(deformed_vertices, dtype=np.float64)
-            if self._pose is None or self._pose.shape != pose.shape or not np.array_equal(self._pose, pose):
-                self.bend.set_deformed(pose)
-                self._pose = pose.copy()
-            extra = self.bend.render_kwargs()
+        bend = self.pose(deformed_vertices)
+        extra = bend.render_kwargs() if bend is not None else {}
         out = render_image(self.model, camera, progress=progress, **extra)
-        out["inversion"] = self.bend.inversion if extra else None
+        out["inversion"] = bend.inversion if bend is not None else None
         return out
+
+    def bake(self, grid, deformed_vertices=None, supersample: int = 1, progress=None):
+        """The NeRF at this pose sampled on a voxel grid (`volume.bake_volume`), plus its inversion report."""
+        bend = self.pose(deformed_vertices)
+        baked = bake_volume(self.model, grid, bend, supersample=supersample, progress=progress)
+        return baked, (bend.inversion if bend is not None else None)

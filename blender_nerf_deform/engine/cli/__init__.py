@@ -78,6 +78,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_command("render"))
 
+    p = sub.add_parser("bake-volume", help="sample the NeRF, at rest or ray-bent by a deformed cage, on a voxel grid "
+                       "(.npz per pose; tools/vdb_from_npz.py makes OpenVDB files of them)")
+    p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
+    p.add_argument("--out", required=True, metavar="DIR", help="writes DIR/<pose name>.npz per pose (DIR/rest.npz without "
+                   "a cage): voxel indices, density per NeRF unit, colour (sRGB), the index->NeRF matrix")
+    p.add_argument("--cage", metavar="CAGE.npz", help="rest cage written by `cage`")
+    p.add_argument("--deformed", metavar="V.npy|DIR", help="(N,3) deformed positions of the cage's vertices, same order; "
+                   "or a folder of such .npy poses, one volume each")
+    p.add_argument("--region", metavar="REGION.json", help="bake only this oriented box (an edit region, the NeRF's "
+                   "frame; the grid's axes follow it)")
+    p.add_argument("--extent", choices=("nerf", "cage"), help="bake the NeRF's box (default; an unbounded NeRF's inner "
+                   "box) or the box of the cage as posed")
+    p.add_argument("--resolution", type=int, default=256, metavar="R", help="voxels along the box's longest side "
+                   "(cubic voxels; default 256)")
+    p.add_argument("--supersample", type=int, default=1, metavar="S", help="S^3 points averaged per voxel (default 1: "
+                   "the voxel's centre)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
+    p.set_defaults(handler=_command("bake_volume"))
+
     p = sub.add_parser("extract", help="extract a filtered surface mesh from a NeRF's density")
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--out", required=True, metavar="MESH.ply", help="output mesh with vertex colours")

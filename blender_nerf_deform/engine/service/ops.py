@@ -37,6 +37,10 @@ modification time; cages, embeddings and regions live in the worker session
              pose {"kind": "rest"} | {"kind": "cage"} + deformed_vertices (shared cage)
                   | {"kind": "handles", mode, transforms, handle_names} (shared cage,
                   embedding, regions)
+    bake_volume  checkpoint, pose, extent, resolution [supersample]
+                                          the NeRF at that pose sampled on a voxel grid over
+                                          its box, the posed cage's box or an edit region: the
+                                          voxels that hold anything, for an OpenVDB file
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..bend.posed import PosedRenderer
+from ..bend.volume import bake_box, check_volume_memory, volume_grid
 from ..errors import EngineError
 from ..geometry.cage import (build_cage, build_nerf_cage, build_part_cages, cut_pins, extend_vertex_labels,
                               part_cut_pins, refine_around)
@@ -419,6 +424,35 @@ def _camera(cam: dict) -> Camera:
         raise EngineError(f"bad camera in the render request: {exc}") from None
 
 
+def _posed(job: Job, model, pose: dict | None):
+    """(PosedRenderer, deformed cage vertices or None at rest, stats) of the pose a request names."""
+    pose = pose or {"kind": "rest"}
+    kind, stats = pose.get("kind"), {}
+    if kind == "rest":
+        return PosedRenderer(model), None, stats
+    if kind not in ("cage", "handles"):
+        raise EngineError(f"unknown pose kind {kind!r}: rest, cage or handles")
+    if kind == "handles":
+        posed = _handle_pose(job, pose)
+        cage_key, cage_arrays, deformed, stats = posed.cage_key, posed.cage, posed.deformed, posed.stats
+    else:
+        cage_key, cage_arrays = SESSION.shared(job, "cage")["cage"]
+        if "deformed_vertices" not in job.arrays:
+            raise EngineError("a cage pose needs its deformed_vertices")
+        deformed = np.asarray(job.arrays["deformed_vertices"], dtype=np.float64)
+        if deformed.shape != cage_arrays["vertices"].shape or not np.isfinite(deformed).all():
+            raise EngineError(f"deformed cage vertices must be finite and of the cage's shape "
+                              f"{cage_arrays['vertices'].shape}, got {deformed.shape}")
+    renderer = SESSION.derived("renderer", (id(model), cage_key),
+                               lambda: PosedRenderer(model, cage_arrays["vertices"], cage_arrays["tets"]), keep=2)
+    return renderer, deformed, stats
+
+
+def _inversion_stats(stats: dict, inversion) -> None:
+    if inversion is not None:
+        stats.update(inverted_tets=inversion.n_inverted, degenerate_tets=inversion.n_degenerate)
+
+
 @op("render")
 def render(job: Job) -> tuple[dict, dict]:
     """One frame from a pinhole camera in the NeRF's frame, at the pose given, solved here.
@@ -429,28 +463,34 @@ def render(job: Job) -> tuple[dict, dict]:
     params = job.params
     model = _model(params)
     camera = _camera(params["camera"])
-    pose = params.get("pose") or {"kind": "rest"}
-    kind, stats = pose.get("kind"), {}
-    if kind == "rest":
-        renderer, deformed = PosedRenderer(model), None
-    elif kind in ("cage", "handles"):
-        if kind == "handles":
-            posed = _handle_pose(job, pose)
-            cage_key, cage_arrays, deformed, stats = posed.cage_key, posed.cage, posed.deformed, posed.stats
-        else:
-            cage_key, cage_arrays = SESSION.shared(job, "cage")["cage"]
-            if "deformed_vertices" not in job.arrays:
-                raise EngineError("a cage pose needs its deformed_vertices")
-            deformed = np.asarray(job.arrays["deformed_vertices"], dtype=np.float64)
-            if deformed.shape != cage_arrays["vertices"].shape or not np.isfinite(deformed).all():
-                raise EngineError(f"deformed cage vertices must be finite and of the cage's shape "
-                                  f"{cage_arrays['vertices'].shape}, got {deformed.shape}")
-        renderer = SESSION.derived("renderer", (id(model), cage_key),
-                                   lambda: PosedRenderer(model, cage_arrays["vertices"], cage_arrays["tets"]), keep=2)
-    else:
-        raise EngineError(f"unknown pose kind {kind!r}: rest, cage or handles")
+    renderer, deformed, stats = _posed(job, model, params.get("pose"))
     out = renderer.render(camera, deformed, progress=lambda done, total: job.progress(done / total, "rendering"))
     stats.update({k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
-    if out["inversion"] is not None:
-        stats.update(inverted_tets=out["inversion"].n_inverted, degenerate_tets=out["inversion"].n_degenerate)
+    _inversion_stats(stats, out["inversion"])
     return stats, {"rgba": out["rgba"].astype(np.float32, copy=False), "depth": out["depth"].astype(np.float32, copy=False)}
+
+
+@op("bake_volume")
+def bake_volume(job: Job) -> tuple[dict, dict]:
+    """The NeRF at the pose given sampled on a voxel grid (bend/volume.py), for an OpenVDB file.
+
+    params: checkpoint, pose (as `render`), extent ("nerf", "cage" or an edit region's dict),
+    resolution, supersample. Returns `shape` and `index_to_nerf` (4x4, voxel index -> the NeRF's
+    frame) with the stats, and arrays `index` (N,3) int32, `density` (N,) float32 per NeRF unit,
+    `color` (N,3) float32 sRGB: the voxels that hold anything.
+    """
+    params = job.params
+    extent = params.get("extent", "nerf")
+    if isinstance(extent, dict):
+        extent = region_from_dict(extent, where="the box to bake")
+    model = _model(params)
+    renderer, deformed, stats = _posed(job, model, params.get("pose"))
+    box = bake_box(extent, model, deformed if deformed is not None else None)
+    grid = volume_grid(box, params.get("resolution", 256))
+    check_volume_memory(grid)
+    job.progress(0.0, "baking")
+    baked, inversion = renderer.bake(grid, deformed, supersample=params.get("supersample", 1),
+                                     progress=lambda done, total: job.progress(done / total, "baking"))
+    stats.update(baked.stats, shape=list(grid.shape), index_to_nerf=grid.index_to_nerf.tolist())
+    _inversion_stats(stats, inversion)
+    return stats, {"index": baked.index, "density": baked.density, "color": baked.color}
