@@ -34,7 +34,7 @@ PLUMBING = ("cli", "service")
 # The add-on's layers, bottom up: one sub-package of addon/ each (docs/ARCHITECTURE.md, "The add-on
 # in layers"). A module imports only from its own layer or lower ones, also inside functions; api.py
 # (the scripting API) sits on top, addon/__init__.py (registration) above everything.
-ADDON_LAYERS = ("data", "worker", "capture", "train", "edit", "deform", "render", "ui")
+ADDON_LAYERS = ("data", "worker", "capture", "train", "edit", "deform", "render", "export", "ui")
 ADDON_TOP = ("api",)
 
 

@@ -3,7 +3,7 @@
 Heavy work is sent to the engine in a worker process. The modules sit in one sub-package per
 layer, bottom up: data (what is stored on objects and files), worker (the client of the engine
 worker and the operators that use it), the pipeline's stages (capture, train, edit, deform,
-render), ui (panels, preferences); api.py, the scripting API, sits on top. A module imports from
+render, export), ui (panels, preferences); api.py, the scripting API, sits on top. A module imports from
 its own layer or lower ones only (tools/check_layering.py). This file registers them all.
 """
 
@@ -13,6 +13,7 @@ from .capture import operators as capture_operators
 from .data import properties
 from .deform import handles, live_preview
 from .edit import cage, extract, load_nerf, pick, regions
+from .export import bake_volume
 from .render import composite, preview_render, render_engine
 from .train import operators as train_operators
 from .train import photos, training_preview
@@ -22,7 +23,7 @@ from .worker import setup as worker_setup
 
 # Bottom up; the panels last, the main one before its sub-panels (Blender lists them in this order).
 _modules = (properties, worker_setup, capture_operators, train_operators, training_preview, photos, load_nerf, regions, pick, extract,
-            cage, handles, live_preview, render_engine, preview_render, composite, preferences, panel, scene_panel, stage_panels)
+            cage, handles, live_preview, render_engine, preview_render, composite, bake_volume, preferences, panel, scene_panel, stage_panels)
 
 
 def register():

@@ -11,6 +11,7 @@
     head = api.vertices_near(surface, (1.7, -1.5, 0.55), 0.75)
     handle = api.add_handle(nerf, head)
     handle.rotation_euler.z = 0.5                       # then render: bpy.ops.render.render(write_still=True)
+    volume = api.bake_volume(nerf, "/out/vdb", frames=(1, 24))  # or as OpenVDB, for Cycles and EEVEE
 
 Every function runs the add-on's operator (so a script does exactly what the buttons do), blocks
 until the worker answers, and raises `RuntimeError` with the operator's own message when it
@@ -217,3 +218,22 @@ def place_cursor_on_nerf(nerf, origin, direction) -> Vector:
     _run(bpy.ops.nerf_deform.place_cursor_on_nerf, "Place 3D Cursor on NeRF", origin=tuple(origin),
          direction=tuple(direction))
     return bpy.context.scene.cursor.location.copy()
+
+
+def bake_volume(nerf, folder: str, resolution: int = 256, extent: str = "NERF", region=None, frames=None,
+                shading: str = "EMISSION", supersample: int = 1) -> bpy.types.Object:
+    """Bake Volume: the NeRF as posed, sampled on a grid of `resolution` voxels along the longest side of
+    its box ("NERF"), of the cage as posed ("CAGE") or of an edit region ("REGION": `region`, the Empty or
+    its name, needed when the NeRF has several), written to `folder` as <NeRF>_<frame>.vdb: the current
+    frame, or each of `frames` = (start, end) (a farm bakes ranges in parallel: a frame's file is the same
+    whichever process bakes it). `shading`: "EMISSION" (as the NeRF renders) or "LIT" (scene lights light
+    it, it casts shadows). Returns the Volume object that plays the files."""
+    nerf = _nerf(nerf)
+    _activate(nerf)
+    kwargs = {"directory": str(folder), "resolution": int(resolution), "extent": extent, "shading": shading,
+              "supersample": int(supersample), "region": getattr(region, "name", region) or ""}
+    if frames is not None:
+        start, end = frames
+        kwargs.update(frames="RANGE", frame_start=int(start), frame_end=int(end))
+    _run(bpy.ops.nerf_deform.bake_volume, "Bake Volume", **kwargs)
+    return bpy.data.objects[f"{nerf.name} Volume"]

@@ -51,6 +51,22 @@ DEFORMATION_MODES = (
     ("MODIFIERS", "Cage Modifiers", "The cage object's modifiers (Armature, Lattice, ...) deform the NeRF"),
 )
 
+# Bake Volume (export/bake_volume.py): the NeRF's settings, which the panel hands to the operator.
+VOLUME_EXTENTS = (
+    ("NERF", "NeRF Box", "The NeRF's whole box (an unbounded NeRF's inner box)"),
+    ("CAGE", "Posed Cage", "The box of the cage as posed at each frame: the edited object"),
+    ("REGION", "Edit Region", "An edit region's box (the one named, or the NeRF's only one)"),
+)
+VOLUME_FRAMES = (
+    ("CURRENT", "Current Frame", "Bake the frame shown"),
+    ("RANGE", "Frame Range", "Bake each frame of the scene's range into a sequence the Volume object plays"),
+)
+VOLUME_SHADINGS = (
+    ("EMISSION", "Emission-Absorption", "As the NeRF renders: it emits its colour and hides what is behind it; "
+     "scene lights do not light it"),
+    ("LIT", "Lit", "It scatters the scene's light (its colour as albedo) and casts shadows: integration over faithfulness"),
+)
+
 PIN_GROUP = "NeRF Pin"
 # Blender 5.0 warns when a "//" path is stored in a property not declared blend-relative;
 # older versions (4.2-4.4) do not know the option.
@@ -97,6 +113,15 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
         description="The cage is pinned where the edit region cut the scene, so the object stays attached; "
                     "off lets the cut move with the rest",
     )
+
+    volume_folder: StringProperty(
+        name="Volume Folder", subtype="DIR_PATH", default="//nerf_volume/", options=_BLEND_RELATIVE_PATH,
+        description="Where Bake Volume writes its .vdb files (// is the .blend's folder)")
+    volume_resolution: IntProperty(name="Volume Resolution", default=256, min=1, max=2048, soft_min=16, soft_max=512,
+                                   description="Voxels along the longest side of the baked box")
+    volume_extent: EnumProperty(name="Volume Box", items=VOLUME_EXTENTS, default="NERF")
+    volume_frames: EnumProperty(name="Volume Frames", items=VOLUME_FRAMES, default="CURRENT")
+    volume_shading: EnumProperty(name="Volume Material", items=VOLUME_SHADINGS, default="EMISSION")
 
     # On handles and edit regions.
     nerf: PointerProperty(name="NeRF", type=bpy.types.Object, description="The NeRF this handle deforms or this region limits")

@@ -54,6 +54,19 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         row.operator("nerf_deform.cancel_preview", text="", icon="CANCEL")
 
         box = layout.box()
+        box.label(text="Volume (Cycles, EEVEE, OpenVDB)")
+        col = box.column(align=True)
+        col.prop(s, "volume_folder", text="")
+        col.prop(s, "volume_resolution", text="Resolution")
+        col.prop(s, "volume_extent", text="Box")
+        col.prop(s, "volume_frames", text="Frames")
+        col.prop(s, "volume_shading", text="Material")
+        bake = box.operator("nerf_deform.bake_volume", icon="VOLUME_DATA")
+        bake.directory, bake.resolution, bake.extent = s.volume_folder, s.volume_resolution, s.volume_extent
+        bake.frames, bake.shading = s.volume_frames, s.volume_shading
+        bake.frame_start, bake.frame_end = context.scene.frame_start, context.scene.frame_end
+
+        box = layout.box()
         box.label(text="Handles")
         col = box.column(align=True)
         col.operator("nerf_deform.add_handle", icon="EMPTY_AXIS")

@@ -53,6 +53,7 @@ class WorkerRequest(NamedTuple):
     params: dict
     arrays: dict | None = None
     stage: str = ""
+    shared: dict | None = None  # worker-session content the request names (client.py)
 
 
 def _as_request(request) -> WorkerRequest:
@@ -74,6 +75,9 @@ class WorkerOperator:
     def apply(self, context, result: dict, arrays: dict) -> set[str]:
         raise NotImplementedError
 
+    def abandon(self, context) -> None:
+        """A chain stopped before its end (Esc between two requests): undo what its stages left."""
+
     def _label(self) -> str:
         """What progress and errors start with: the operator, and the stage of a chain."""
         stage = self.current_request.stage if self.current_request is not None else ""
@@ -93,7 +97,7 @@ class WorkerOperator:
             self.current_request = request
             label = self._label()
             try:
-                result, out = client.call(request.op, request.params, request.arrays,
+                result, out = client.call(request.op, request.params, request.arrays, shared=request.shared,
                                           on_progress=lambda f, msg: print(f"{label}: {100 * f:5.1f}% {msg}"))
             except (WorkerError, ValueError) as error:
                 return self._fail(error)
@@ -112,6 +116,7 @@ class WorkerOperator:
             on_done=lambda result, out: self._state.update(done=("ok", result, out)),
             on_error=lambda error: self._state.update(done=("error", error, None)),
             on_progress=lambda f, msg: self._state.update(progress=f, message=msg),
+            shared=request.shared,
         )
 
     def invoke(self, context, event):
@@ -161,6 +166,7 @@ class WorkerOperator:
             return answer
         if self._cancel_asked:  # the stage ended before the cancel reached it: go no further
             self._finish(context)
+            self.abandon(context)
             self.report({"WARNING"}, f"{self._label()}: cancelled after this stage; {answer.stage or answer.op} not started")
             return {"CANCELLED"}
         try:

@@ -1,0 +1,254 @@
+"""Bake Volume: the NeRF as posed at a frame (or each frame of a range) written as OpenVDB, and a
+Volume object that plays it, so Cycles and EEVEE render the edited NeRF with the scene's lights,
+meshes and shadows, and other applications read it.
+
+Each frame is one worker request (`bake_volume`, with the same pose a render sends: handles, the
+modifier-deformed cage, or rest), answered with the voxels that hold anything; `volume_file`
+writes them. The files go to a folder of their own while the bake runs and move to the output
+folder only when every frame is done: Esc or an error leaves the output folder as it was (a
+previous bake included), and the scene unchanged. `<NeRF>_<frame>.vdb`, four digits, so Blender
+reads a range as a sequence; a frame's file is the same bytes whichever process baked it, so a
+farm can bake ranges in parallel (`-s/-e` with `api.bake_volume`).
+
+Units: the grids' transform is in the NeRF's frame and the Volume object is a child of the NeRF
+object with no offset; density is written per unit length of the Blender world (the NeRF's density
+divided by the NeRF object's scale at that frame), so a scaled NeRF renders the same. Colour is
+scene-linear (the NeRF's sRGB colours decoded), as Blender's renders are.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ...engine.memory import available_memory, gib
+from ..data.cage_store import has_cage, load_cage
+from ..data.images import srgb_to_linear
+from ..data.properties import VOLUME_EXTENTS, VOLUME_FRAMES, VOLUME_SHADINGS, OnNeRF, alive, alive_object, owning_nerf
+from ..edit.regions import region_dict, regions_of
+from ..render.frame import nerf_pose, render_warnings
+from ..worker.jobs import WorkerOperator, WorkerRequest
+from .volume_file import VolumeFileError, openvdb_module, write_vdb
+from .volume_material import volume_material
+
+MAX_RESOLUTION = 2048
+
+
+def volume_file_name(nerf_name: str, frame: int) -> str:
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in nerf_name)
+    return f"{safe}_{frame:04d}.vdb"
+
+
+def world_scale(matrix_world) -> float:
+    """World units per NeRF unit (the cube root of the volume scale: a non-uniform scale has no single
+    factor; this one keeps the volume's total optical mass)."""
+    m = np.array(matrix_world, dtype=np.float64)[:3, :3]
+    return float(abs(np.linalg.det(m)) ** (1.0 / 3.0))
+
+
+class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
+    """Bake the NeRF as posed (handles, cage modifiers, or rest) to OpenVDB and add a Volume object that
+    plays it, so Cycles and EEVEE render it with the scene's lights, meshes and shadows"""
+
+    bl_idname = "nerf_deform.bake_volume"
+    bl_label = "Bake Volume"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: bpy.props.StringProperty(
+        name="Folder", subtype="DIR_PATH", default="//nerf_volume/",
+        description="Where the .vdb files go (// is the .blend's folder); one file per frame, <NeRF>_<frame>.vdb")
+    resolution: bpy.props.IntProperty(
+        name="Resolution", default=256, min=1, max=MAX_RESOLUTION, soft_min=16, soft_max=512,
+        description="Voxels along the longest side of the baked box (cubic voxels)")
+    extent: bpy.props.EnumProperty(name="Box", items=VOLUME_EXTENTS, default="NERF")
+    region: bpy.props.StringProperty(name="Region", default="", description="The edit region to bake (Box: Edit Region)")
+    frames: bpy.props.EnumProperty(name="Frames", items=VOLUME_FRAMES, default="CURRENT")
+    frame_start: bpy.props.IntProperty(name="Start", default=1, description="First frame of the range (Frames: Frame Range)")
+    frame_end: bpy.props.IntProperty(name="End", default=250, description="Last frame of the range (Frames: Frame Range)")
+    shading: bpy.props.EnumProperty(name="Material", items=VOLUME_SHADINGS, default="EMISSION")
+    supersample: bpy.props.IntProperty(name="Supersample", default=1, min=1, max=4,
+                                       description="Points averaged per voxel along each axis (1: its centre)")
+
+    def invoke(self, context, event):
+        scene = context.scene
+        if not self.properties.is_property_set("frame_start"):
+            self.frame_start = scene.frame_start
+        if not self.properties.is_property_set("frame_end"):
+            self.frame_end = scene.frame_end
+        return super().invoke(context, event)
+
+    # The chain: one request per frame; apply stores the frame and asks for the next.
+    def request(self, context):
+        self._nerf = owning_nerf(context.active_object)
+        scene = context.scene
+        if self.frames == "RANGE":
+            if self.frame_end < self.frame_start:
+                raise ValueError(f"the frame range ends ({self.frame_end}) before it starts ({self.frame_start})")
+            self._frames = list(range(self.frame_start, self.frame_end + 1))
+        else:
+            self._frames = [scene.frame_current]
+        self._frame_before = scene.frame_current
+        self._region = self._chosen_region(self._nerf) if self.extent == "REGION" else None
+        if not self.directory or (self.directory.startswith("//") and not bpy.data.filepath):
+            raise ValueError("save the .blend first, or give the bake an absolute folder: // is the .blend's folder")
+        self._out = Path(bpy.path.abspath(self.directory))
+        self._check_memory()
+        openvdb_module()  # no OpenVDB: say so before any work
+        try:
+            self._out.mkdir(parents=True, exist_ok=True)
+            self._staging = Path(_make_staging(self._out))
+        except OSError as exc:
+            raise ValueError(f"cannot write to {self._out}: {exc.strerror or exc}") from None
+        self._written: list[tuple[int, str]] = []
+        self._warnings: list[str] = []
+        self._next = 0
+        return self._frame_request(context)
+
+    def _chosen_region(self, nerf) -> dict:
+        regions = regions_of(nerf)
+        if not regions:
+            raise ValueError(f"{nerf.name} has no edit region: add one, or bake the NeRF's box or the posed cage")
+        if self.region:
+            named = [r for r in regions if r.name == self.region]
+            if not named:
+                raise ValueError(f"{self.region!r} is not an edit region of {nerf.name} "
+                                 f"(its regions: {', '.join(r.name for r in regions)})")
+            return region_dict(named[0], nerf)
+        active = bpy.context.active_object
+        if len(regions) > 1 and active in regions:
+            return region_dict(active, nerf)
+        if len(regions) > 1:
+            raise ValueError(f"{nerf.name} has {len(regions)} edit regions ({', '.join(r.name for r in regions)}): "
+                             "select the one to bake, or name it (Region)")
+        return region_dict(regions[0], nerf)
+
+    def _check_memory(self) -> None:
+        """Blender's side of a frame (the worker checks its own): the sparse voxels it receives and the
+        dense slabs and grids it writes from them, at worst every voxel; refused before any work."""
+        voxels = float(self.resolution) ** 3
+        need = voxels * (28 + 16)
+        free = available_memory()
+        if free is not None and need > free:
+            raise ValueError(f"a {self.resolution}^3 volume needs about {gib(need)} of memory, but only {gib(free)} "
+                             "is available: bake it at a lower resolution, or over a smaller box (an edit region, "
+                             "or the posed cage)")
+
+    def _frame_request(self, context) -> WorkerRequest:
+        frame = self._frames[self._next]
+        scene = context.scene
+        scene.frame_set(frame)
+        depsgraph = context.evaluated_depsgraph_get()
+        posed = nerf_pose(depsgraph, self._nerf)
+        extent: object = "nerf"
+        if self.extent == "REGION":
+            extent = self._region
+        elif self.extent == "CAGE":
+            extent = "cage" if posed.params["pose"]["kind"] != "rest" else self._rest_cage_box()
+        self._scale = world_scale(self._nerf.evaluated_get(depsgraph).matrix_world)
+        params = {**posed.params, "extent": extent, "resolution": self.resolution, "supersample": self.supersample}
+        stage = f"frame {frame} ({self._next + 1} of {len(self._frames)})" if len(self._frames) > 1 else f"frame {frame}"
+        return WorkerRequest("bake_volume", params, posed.arrays, stage, posed.shared)
+
+    def _rest_cage_box(self) -> dict:
+        cage = alive(self._nerf.nerf_deform.cage)
+        if cage is None or not has_cage(cage.data):
+            raise ValueError(f"{self._nerf.name} has no cage: build one, or bake the NeRF's box or an edit region")
+        vertices, _tets = load_cage(cage.data)
+        lo, hi = vertices.min(0), vertices.max(0)
+        return {"center": [float(x) for x in 0.5 * (lo + hi)], "size": [float(x) for x in hi - lo],
+                "rotation_euler": [0.0, 0.0, 0.0]}
+
+    def apply(self, context, result, arrays):
+        frame = self._frames[self._next]
+        if not alive_object(self._nerf):
+            return self._fail(ValueError("the NeRF was deleted while it was baked"))
+        self._warnings.extend(render_warnings(self._nerf.name, frame, result))
+        name = volume_file_name(self._nerf.name, frame)
+        index_to_nerf = np.asarray(result["index_to_nerf"], dtype=np.float64)
+        try:
+            write_vdb(self._staging / name, result["shape"], index_to_nerf, arrays["index"],
+                      arrays["density"] / self._scale, srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)))
+        except VolumeFileError as error:
+            return self._fail(error)
+        self._written.append((frame, name))
+        print(f"{self.bl_label}: frame {frame}: {result['active_voxels']} voxels, {result['seconds']:.1f} s")
+        self._next += 1
+        if self._next < len(self._frames):
+            return self._frame_request(context)
+        return self._finish_bake(context)
+
+    def _finish_bake(self, context) -> set[str]:
+        for _frame, name in self._written:
+            os.replace(self._staging / name, self._out / name)
+        shutil.rmtree(self._staging, ignore_errors=True)
+        context.scene.frame_set(self._frame_before)
+        volume = volume_object(context, self._nerf, self._out / self._written[0][1], [f for f, _ in self._written],
+                               self.shading)
+        for line in self._warnings:
+            self.report({"WARNING"}, line)
+        self.report({"INFO"}, f"{volume.name}: baked {len(self._written)} frame{'s' if len(self._written) > 1 else ''} "
+                              f"to {self._out}")
+        return {"FINISHED"}
+
+    def _fail(self, error: Exception) -> set[str]:
+        self._abandon()
+        return super()._fail(error)
+
+    def abandon(self, context) -> None:
+        self._abandon()
+
+    def _abandon(self) -> None:
+        """Nothing of a bake that did not finish stays: its folder of finished frames goes, the frame
+        shown comes back."""
+        staging = getattr(self, "_staging", None)
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+            self._staging = None
+        before = getattr(self, "_frame_before", None)
+        if before is not None and bpy.context.scene.frame_current != before:
+            bpy.context.scene.frame_set(before)
+
+
+def _make_staging(out: Path) -> str:
+    import tempfile
+
+    return tempfile.mkdtemp(prefix=".baking-", dir=out)
+
+
+def volume_object(context, nerf, first_file: Path, frames: list[int], shading: str) -> bpy.types.Object:
+    """The NeRF's Volume object (made once, then reused), reading `first_file` (and its sequence),
+    a child of the NeRF with no offset, with the material `shading` asks for; the NeRF's own render
+    hidden from other engines' renders is left to the artist."""
+    name = f"{nerf.name} Volume"
+    obj = bpy.data.objects.get(name)
+    if obj is None or obj.type != "VOLUME" or obj.library is not None:
+        volume = bpy.data.volumes.new(name)
+        obj = bpy.data.objects.new(name, volume)
+        for collection in nerf.users_collection:
+            collection.objects.link(obj)
+    volume = obj.data
+    path = bpy.path.relpath(str(first_file)) if bpy.data.filepath else str(first_file)
+    volume.filepath = path  # setting it (even to the same path) unloads the grids: a re-bake shows
+    volume.is_sequence = len(frames) > 1
+    if volume.is_sequence:
+        volume.frame_start, volume.frame_duration, volume.frame_offset = frames[0], len(frames), frames[0] - 1
+        volume.sequence_mode = "CLIP"
+    else:
+        volume.frame_offset = 0
+    obj.parent = nerf
+    obj.matrix_parent_inverse.identity()
+    obj.matrix_basis.identity()
+    material = volume_material(shading)
+    if volume.materials:
+        volume.materials[0] = material
+    else:
+        volume.materials.append(material)
+    return obj
+
+
+_classes = (NERFDEFORM_OT_bake_volume,)
+register, unregister = bpy.utils.register_classes_factory(_classes)
