@@ -19,15 +19,19 @@ The cage pose of a frame is the minimiser, over the cage's vertex positions U, o
   al. 2017) bound it. C2 and exactly 0 above j: a pose that keeps every tet above j is pure ARAP.
 
 Flip-free by construction: the solve starts from a flip-free configuration made from the pose alone
-(the linear blend of the handles' affines, pulled back towards the rest cage until every tet keeps
+(the linear blend of the handles' affines; where that squeezes a tet below j, a few plain ARAP steps
+from it; if they leave a tet below j / 2, pulled back towards the rest cage until every tet keeps
 J >= j / 2; the rest cage itself at worst), and every step goes through a line search that refuses
 any configuration with a tet at J <= 0. Each iterate, so the result, has no inverted tet, and a
 frame's result depends on that frame's handles alone (never on the frame rendered before).
 
 Each iteration is a quasi-Newton step whose matrix is 2 (L + C^T W C) (L the cotangent Laplacian of
 the elements energy), factored once per set of handles: with no barrier active its full step is one
-ARAP local/global iteration. Tets below j add their Gauss-Newton terms kappa vol b''(J) g g^T by the
-Woodbury identity (a few) or one sparse LU of the whole matrix (many). Backtracking (Armijo) line
+ARAP local/global iteration, and L-BFGS (Liu et al. 2017, the Laplacian as the initial Hessian)
+corrects it with the last few steps' curvature: on the demo's bends 5-8 iterations where plain
+local/global steps need 7-11. Tets below j add their Gauss-Newton terms kappa vol b''(J) g g^T by the
+Woodbury identity (a few) or one sparse LU of the whole matrix (many); while the barrier acts the
+steps are plain (its curvature changes too fast for secant pairs). Backtracking (Armijo) line
 search on E. Bounded by an iteration count, not a clock (a result must not depend on the machine).
 
 A handle whose affine is a reflection (a negative scale) asks for what no fold-free deformation
@@ -45,6 +49,8 @@ from ..errors import EngineError
 from .barycentric import signed_volumes
 from .deform import ElementsEnergy, PieceBlend, _matrix, check_disjoint, tet_components
 
+HISTORY = 5  # L-BFGS pairs kept
+GUESS_STEPS = 3  # plain ARAP steps the first guess may take to undo the blend's folds
 WOODBURY_TETS = 48  # up to this many tets below the threshold, their Hessian terms enter by Woodbury
 
 
@@ -106,6 +112,7 @@ class SurfaceArap:
 
         self._elements = ElementsEnergy(V, T)
         self.L = self._elements.L
+        self._L_rest = self.L @ V
 
         # The constraint rows: the handles' surface vertices, the pinned ones, the cut's cage vertices.
         self.names = list(names or [f"handle {k}" for k in range(len(handle_points))])
@@ -264,22 +271,40 @@ class SurfaceArap:
         y = np.linalg.solve(M, sum(S[a].T @ x[verts, a] for a in range(3)))
         return x - W @ np.stack([S[a] @ y for a in range(3)], axis=1)
 
+    def _lbfgs(self, G: np.ndarray, history: list, act, g, d2) -> np.ndarray:
+        """The L-BFGS direction: the two-loop recursion around the quasi-Newton matrix's inverse."""
+        q, alphas = G.copy(), []
+        for s_k, y_k, rho in reversed(history):
+            a = rho * float((s_k * q).sum())
+            q -= a * y_k
+            alphas.append(a)
+        r = self._direction(q, act, g, d2)
+        for (s_k, y_k, rho), a in zip(history, reversed(alphas)):
+            r += s_k * (a - rho * float((y_k * r).sum()))
+        return -r
+
     # -- the solve ----------------------------------------------------------------------------
-    def _first_guess(self, transforms: list) -> np.ndarray:
-        """The linear blend of the handles' affines (pins at rest), per piece of the cage, pulled back
-        towards the rest cage until every tet keeps J >= j / 2: flip-free, from the pose alone."""
-        start = self._guess([_matrix(A) for A in transforms] + [np.eye(4)])
-        D = start - self.rest
-
-        def ok(s):
-            return bool((signed_volumes(self.rest + s * D, self.tets) >= 0.5 * self.j * self.vol0).all())
-
-        if ok(1.0):
-            return start
+    def _first_guess(self, transforms: list, pulls) -> np.ndarray:
+        """A flip-free start from the pose alone: the linear blend of the handles' affines (pins at rest),
+        per piece of the cage. Where it squeezes a tet below j (the blend of two turns collapses a bend's
+        inside), plain ARAP steps from it, the barrier left out: on the demo's bends one step undoes every
+        fold and leaves every tet above j, where the barrier would only slow the solve down. If they do
+        not reach J >= j / 2, pulled back towards the rest cage until every tet keeps J >= j / 2."""
+        U = self._guess([_matrix(A) for A in transforms] + [np.eye(4)])
+        for step in range(GUESS_STEPS + 1):
+            J = signed_volumes(U, self.tets) / self.vol0
+            if J.min() >= self.j or step == GUESS_STEPS:
+                break
+            B = self._elements.local(np.ascontiguousarray(U))
+            U = self.rest + self._solve_A(2.0 * (B - self._L_rest + pulls[0]))  # the minimiser of E at these rotations
+        if J.min() >= 0.5 * self.j:
+            return U
+        D = U - self.rest
         lo, hi = 0.0, 1.0
         for _ in range(12):
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+            clear = (signed_volumes(self.rest + mid * D, self.tets) >= 0.5 * self.j * self.vol0).all()
+            lo, hi = (mid, hi) if clear else (lo, mid)
         return self.rest + lo * D
 
     def solve(self, transforms: list, max_iter: int = 100, tol: float = 1e-4) -> SurfacePose:
@@ -287,19 +312,30 @@ class SurfaceArap:
         more than `tol` x the cage's diagonal, after at most `max_iter` iterations."""
         t0 = time.perf_counter()
         pulls = self._pulls(transforms)
-        U = self._first_guess(transforms)
+        U = self._first_guess(transforms, pulls)
         E, J, B = self._evaluate(U, pulls)
         if not np.isfinite(E):
             raise EngineError("internal: the cage pose started from a configuration with an inverted tet")
         self._columns = {}
         it, moved = 0, np.inf
+        history, last = [], None  # L-BFGS pairs (s, y, 1 / s.y); the previous iterate and gradient
         for it in range(1, max_iter + 1):
             G = 2.0 * (self.L @ U - B) + 2.0 * (self.Q @ (U - self.rest) - pulls[0])
             act, g, d1, d2 = self._barrier_terms(U, J)
             if len(act):
                 np.add.at(G, self.tets[act].ravel(), (d1[:, None, None] * g).reshape(-1, 3))
-            d = self._direction(-G, act, g, d2)
+                history, last = [], None  # the barrier's curvature changes too fast for secant pairs: plain steps
+            if last is not None:
+                s_k, y_k = U - last[0], G - last[1]
+                sy = float((s_k * y_k).sum())
+                if sy > 1e-12 * float((y_k * y_k).sum()) ** 0.5 * float((s_k * s_k).sum()) ** 0.5:
+                    history = (history + [(s_k, y_k, 1.0 / sy)])[max(0, len(history) + 1 - HISTORY):]
+            d = self._lbfgs(G, history, act, g, d2)
             slope = float((G * d).sum())
+            if slope >= 0 and history:  # the history's curvature misleads: start over from the plain step
+                history = []
+                d = self._lbfgs(G, history, act, g, d2)
+                slope = float((G * d).sum())
             full = float(np.abs(d).max()) / self.diag
             if slope >= 0 or full < 1e-3 * tol:  # no descent left, or nothing left to move (round-off)
                 moved = full
@@ -317,6 +353,7 @@ class SurfaceArap:
                 moved = 0.0
                 break
             moved = alpha * full
+            last = (U, G)
             U, E, J, B = trial, E_t, J_t, B_t
             if moved < tol:
                 break
