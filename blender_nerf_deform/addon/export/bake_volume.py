@@ -62,7 +62,7 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         name="Folder", subtype="DIR_PATH", default="//nerf_volume/",
         description="Where the .vdb files go (// is the .blend's folder); one file per frame, <NeRF>_<frame>.vdb")
     resolution: bpy.props.IntProperty(
-        name="Resolution", default=256, min=1, max=MAX_RESOLUTION, soft_min=16, soft_max=512,
+        name="Resolution", default=256, soft_min=16, soft_max=512,
         description="Voxels along the longest side of the baked box (cubic voxels)")
     extent: bpy.props.EnumProperty(name="Box", items=VOLUME_EXTENTS, default="NERF")
     region: bpy.props.StringProperty(name="Region", default="", description="The edit region to bake (Box: Edit Region)")
@@ -84,6 +84,9 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
     # The chain: one request per frame; apply stores the frame and asks for the next.
     def request(self, context):
         self._nerf = owning_nerf(context.active_object)
+        if not 1 <= self.resolution <= MAX_RESOLUTION:
+            raise ValueError(f"the resolution must be from 1 to {MAX_RESOLUTION} voxels along the box's longest side, "
+                             f"got {self.resolution}")
         scene = context.scene
         if self.frames == "RANGE":
             if self.frame_end < self.frame_start:
@@ -98,6 +101,7 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         self._out = Path(bpy.path.abspath(self.directory))
         self._check_memory()
         openvdb_module()  # no OpenVDB: say so before any work
+        self._created_out = not self._out.exists()
         try:
             self._out.mkdir(parents=True, exist_ok=True)
             self._staging = Path(_make_staging(self._out))
@@ -178,7 +182,10 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         print(f"{self.bl_label}: frame {frame}: {result['active_voxels']} voxels, {result['seconds']:.1f} s")
         self._next += 1
         if self._next < len(self._frames):
-            return self._frame_request(context)
+            try:
+                return self._frame_request(context)
+            except ValueError as error:  # the next frame cannot be posed (a zero scale keyed on the NeRF, ...)
+                return self._fail(error)
         return self._finish_bake(context)
 
     def _finish_bake(self, context) -> set[str]:
@@ -208,6 +215,8 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
             self._staging = None
+            if getattr(self, "_created_out", False) and not any(self._out.iterdir()):
+                self._out.rmdir()
         before = getattr(self, "_frame_before", None)
         if before is not None and bpy.context.scene.frame_current != before:
             bpy.context.scene.frame_set(before)

@@ -14,14 +14,20 @@ emission-absorption volume. One grid per frame:
   filter): a thin shell keeps its optical depth on a coarse grid, where a point
   at the centre would miss it or count it whole. Posed: the rest density at each
   point's rest position times the tet's |det A|^(1/3) (`CageBend.map_points`).
-- Colour: the NeRF's radiance averaged over view directions, since a volume
-  emits alike in every direction: the 12 directions of an icosahedron, a
-  spherical 5-design, so the average is exact for everything of degree <= 5 in
-  the direction (the colour net's SH input is degree <= 4); the outputs are
-  averaged, not the SH input (the net is not linear in it). sRGB, as the NeRF
-  learnt it; the density-weighted mean over the voxel's points. Voxels next to
-  dense ones get their neighbours' colour, so that a renderer's trilinear
-  lookup at a surface does not blend in black.
+- Colour: a volume emits alike in every direction, a NeRF's colour depends on
+  the view. Each point's colour is the NeRF's as seen head-on from outside:
+  looking against the density's gradient (central differences on the baked
+  density), turned into rest space with the tet; where the density is flat
+  (inside a solid) the mean over the 12 directions of an icosahedron (a
+  spherical 5-design). Measured against a camera's own view direction on the
+  demo NeRF (Cycles against the NeRF Deform engine, 128^3): head-on 32.2 dB,
+  the cosine-weighted mean over the outward hemisphere 32.1, the mean over all
+  directions 31.2 (directions never photographed, from inside the object, pull
+  it off), the camera's own direction 33.0; head-on is also one colour
+  evaluation per point instead of twelve. sRGB, as the NeRF learnt it; the
+  density-weighted mean over the voxel's points. Voxels next to dense ones get
+  their neighbours' colour, so that a renderer's trilinear lookup at a surface
+  does not blend in black.
 - Empty: where the NeRF's occupancy grid is (the renderer skips the same
   space), space a pose vacates, and an unbounded NeRF's background outside its
   inner box (not baked).
@@ -274,22 +280,26 @@ def _density(model, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _seen_color(model, geo: torch.Tensor, rotation: torch.Tensor, outward: torch.Tensor) -> torch.Tensor:
-    """(N, 3): each point's colour as seen from outside: the mean over the VIEW_DIRECTIONS d that
-    look at it from the side `outward` points to, weighted by -d·outward (a viewer's foreshortening);
-    all directions alike where `outward` is zero. Directions turn into rest space by `rotation`."""
-    dirs = torch.as_tensor(VIEW_DIRECTIONS, dtype=torch.float32, device=geo.device)  # (K, 3)
-    k = len(dirs)
-    out = []
-    block = max(1, (1 << 16) // k)
-    for s in range(0, len(geo), block):
-        g, r, n = geo[s: s + block], rotation[s: s + block], outward[s: s + block]
-        w = (-(n @ dirs.T)).clamp_min(0.0)  # (B, K)
-        w = torch.where(n.abs().sum(1, keepdim=True) > 0, w, torch.ones_like(w))
-        w = w / w.sum(1, keepdim=True).clamp_min(1e-30)
+    """(N, 3): each point's colour as seen head-on from outside: looking along -`outward`; where
+    `outward` is zero (inside a solid, no gradient) the mean over VIEW_DIRECTIONS. Directions turn
+    into rest space by `rotation`."""
+    head_on = outward.abs().sum(1) > 0
+    out = geo.new_zeros(len(geo), 3)
+    if head_on.any():
+        d = torch.einsum("bij,bj->bi", rotation[head_on], -outward[head_on])
+        out[head_on] = _blocked(model, geo[head_on], d)
+    if (~head_on).any():
+        g, r = geo[~head_on], rotation[~head_on]
+        dirs = torch.as_tensor(VIEW_DIRECTIONS, dtype=torch.float32, device=geo.device)
+        k = len(dirs)
         rest_dirs = torch.einsum("bij,kj->bki", r, dirs).reshape(-1, 3)
-        rgb = model.color(g.repeat_interleave(k, dim=0), rest_dirs).reshape(len(g), k, 3)
-        out.append((rgb * w[..., None]).sum(1))
-    return torch.cat(out) if out else geo.new_zeros(0, 3)
+        out[~head_on] = _blocked(model, g.repeat_interleave(k, dim=0), rest_dirs).reshape(len(g), k, 3).mean(1)
+    return out
+
+
+def _blocked(model, geo: torch.Tensor, dirs: torch.Tensor, block: int = 1 << 16) -> torch.Tensor:
+    return torch.cat([model.color(geo[s: s + block], dirs[s: s + block]) for s in range(0, len(geo), block)]) \
+        if len(geo) else geo.new_zeros(0, 3)
 
 
 def _shell_colors(color: np.ndarray, filled: np.ndarray) -> np.ndarray:
