@@ -113,6 +113,30 @@ def test_a_reflected_handle_is_named_and_nothing_folds(bar):
     assert inversion_report(V, posed, T).n_inverted == 0 and stats["min_det_f"] > 0
 
 
+def test_the_fused_local_step_matches_the_jacobi_kernels(bar):
+    """surface_arap_kernels.surface_local (rotations from Horn's matrix by Newton on its characteristic
+    polynomial) gives ARAP's local step of deform.ElementsEnergy (cyclic Jacobi) and det F, to round-off:
+    on a rigid turn, a random jiggle, and a squash to a line, a plane and a point (where the
+    top eigenvalue repeats and the kernel falls back on Jacobi's sweeps)."""
+    from blender_nerf_deform.engine.geometry.barycentric import signed_volumes
+    from blender_nerf_deform.engine.geometry.deform import ElementsEnergy
+    from blender_nerf_deform.engine.geometry.surface_arap_kernels import surface_local
+
+    V, T = bar[0], bar[1]
+    elements, vol0 = ElementsEnergy(V, T), signed_volumes(V, T)
+    rng = np.random.default_rng(7)
+    turn = _turn_x(170, V.mean(0))
+    for U in (V @ turn[:3, :3].T + turn[:3, 3], V + 0.05 * rng.standard_normal(V.shape), V * [1.0, 0.0, 0.0],
+              V * [1.0, 1.0, 0.0], 0.0 * V, V * [1.0, -1.0, 1.0]):
+        U = np.ascontiguousarray(U)
+        B, J = np.empty_like(U), np.empty(len(T))
+        energy = surface_local(U, T, elements.W, elements.E, 1.0 / (6.0 * vol0), B, J)
+        expected = elements.local(U)
+        assert np.abs(B - expected).max() <= 1e-12 * np.abs(expected).max()
+        assert abs(energy - elements.tet_energy.sum()) <= 1e-12 * max(1.0, elements.tet_energy.sum())
+        assert np.allclose(J, signed_volumes(U, T) / vol0, rtol=0, atol=1e-12)
+
+
 def test_bad_regions_are_refused_with_one_line(bar):
     V, T, points, embedding, regions = bar
     with pytest.raises(EngineError, match="overlap"):

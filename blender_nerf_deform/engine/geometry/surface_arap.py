@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import EngineError
+from . import surface_arap_kernels
 from .barycentric import signed_volumes
 from .deform import ElementsEnergy, PieceBlend, _matrix, check_disjoint, tet_components
 
@@ -112,6 +113,7 @@ class SurfaceArap:
 
         self._elements = ElementsEnergy(V, T)
         self.L = self._elements.L
+        self._inv_det0 = 1.0 / (6.0 * self.vol0)
         self._L_rest = self.L @ V
 
         # The constraint rows: the handles' surface vertices, the pinned ones, the cut's cage vertices.
@@ -160,6 +162,7 @@ class SurfaceArap:
         weighted = sp.diags(row_weight) @ self.C
         self.Q = (self.C.T @ weighted).tocsr()  # the constraints' quadratic form on the cage: C^T W C
         self.A = (self.L + self.Q).tocsc()
+        self._handle_C = [self.C[rows] for rows in self._handle_rows]  # for the residual
         # The pulls in displacement form (D = U - rest; a row's target displacement is t_k - c_k.rest,
         # 0 for every pin), reduced to the cage's vertices once, so a frame costs O(cage), not O(rows):
         # for a handle with affine x -> x R^T + a, sum_k w_k |c_k D - (p_k M + a)|^2 with M = R^T - I
@@ -197,15 +200,22 @@ class SurfaceArap:
             c += float(np.trace(M.T @ S @ M) + 2.0 * s @ (M @ a) + w * (a @ a))
         return b, c
 
+    def _local(self, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(B, J, E_ARAP): ARAP's local step at U (the global step's right-hand side), det F per tet and
+        the elements energy, in one pass over the tets."""
+        U = np.ascontiguousarray(U)
+        B, J = np.empty_like(U), np.empty(len(self.tets))
+        e = self._elements
+        energy = surface_arap_kernels.surface_local(U, self.tets, e.W, e.E, self._inv_det0, B, J)
+        return B, J, energy
+
     def _evaluate(self, U: np.ndarray, pulls):
         """(E, J, B): the energy (inf when a tet has J <= 0), det F per tet, ARAP's right-hand side at U."""
-        J = signed_volumes(U, self.tets) / self.vol0
+        B, J, energy = self._local(U)
         if not (J > 0).all():
             return np.inf, J, None
-        U = np.ascontiguousarray(U)
-        B = self._elements.local(U)
         D, (b, c) = U - self.rest, pulls
-        E = float(self._elements.tet_energy.sum()) + float((D * (self.Q @ D - 2.0 * b)).sum()) + c
+        E = energy + float((D * (self.Q @ D - 2.0 * b)).sum()) + c
         E += self.kappa * float((self.vol0 * barrier(J, self.j)).sum())
         return E, J, B
 
@@ -288,23 +298,27 @@ class SurfaceArap:
         """A flip-free start from the pose alone: the linear blend of the handles' affines (pins at rest),
         per piece of the cage. Where it squeezes a tet below j (the blend of two turns collapses a bend's
         inside), plain ARAP steps from it, the barrier left out: on the demo's bends one step undoes every
-        fold and leaves every tet above j, where the barrier would only slow the solve down. If they do
-        not reach J >= j / 2, pulled back towards the rest cage until every tet keeps J >= j / 2."""
+        fold and leaves every tet above j, where the barrier would only slow the solve down. The first of
+        these with every tet above j, else the last with every tet above j / 2, else the last pulled back
+        towards the rest cage until every tet keeps J >= j / 2."""
         U = self._guess([_matrix(A) for A in transforms] + [np.eye(4)])
+        clear = None
         for step in range(GUESS_STEPS + 1):
-            J = signed_volumes(U, self.tets) / self.vol0
-            if J.min() >= self.j or step == GUESS_STEPS:
-                break
-            B = self._elements.local(np.ascontiguousarray(U))
-            U = self.rest + self._solve_A(2.0 * (B - self._L_rest + pulls[0]))  # the minimiser of E at these rotations
-        if J.min() >= 0.5 * self.j:
-            return U
+            B, J, _ = self._local(U)
+            if J.min() >= self.j:
+                return U
+            if J.min() >= 0.5 * self.j:
+                clear = U
+            if step < GUESS_STEPS:
+                U = self.rest + self._solve_A(2.0 * (B - self._L_rest + pulls[0]))  # the minimiser of E at these rotations
+        if clear is not None:
+            return clear
         D = U - self.rest
         lo, hi = 0.0, 1.0
         for _ in range(12):
             mid = 0.5 * (lo + hi)
-            clear = (signed_volumes(self.rest + mid * D, self.tets) >= 0.5 * self.j * self.vol0).all()
-            lo, hi = (mid, hi) if clear else (lo, mid)
+            ok = (signed_volumes(self.rest + mid * D, self.tets) >= 0.5 * self.j * self.vol0).all()
+            lo, hi = (mid, hi) if ok else (lo, mid)
         return self.rest + lo * D
 
     def solve(self, transforms: list, max_iter: int = 100, tol: float = 1e-4) -> SurfacePose:
@@ -358,10 +372,10 @@ class SurfaceArap:
             if moved < tol:
                 break
         residual = 0.0
-        for rows, size, A in zip(self._handle_rows, self._region_size, transforms):
+        for rows, C_h, size, A in zip(self._handle_rows, self._handle_C, self._region_size, transforms):
             A = _matrix(A)
             target = self._rest_points[rows] @ A[:3, :3].T + A[:3, 3]
-            residual = max(residual, float(np.linalg.norm(self.C[rows] @ U - target, axis=1).max()) / size)
+            residual = max(residual, float(np.linalg.norm(C_h @ U - target, axis=1).max()) / size)
         reflected = [name for name, A in zip(self.names, transforms) if np.linalg.det(_matrix(A)[:3, :3]) < 0]
         return SurfacePose(U, it, moved < tol, time.perf_counter() - t0, float(J.min()), residual,
                            int((J < self.j).sum()), reflected)
