@@ -201,3 +201,37 @@ def test_bad_bakes_say_what_is_wrong_and_leave_nothing_behind(addon, sphere_nerf
     # A NeRF without a cage bakes its rest pose.
     volume = api.bake_volume(nerf, str(out), resolution=16)
     assert volume.parent == nerf and (out / f"{nerf.name.replace(' ', '_')}_0001.vdb").is_file()
+
+
+def test_the_command_lines_npz_become_vdb_files_blender_reads(addon, sphere_nerf, tmp_path):
+    import subprocess
+    import sys
+
+    from blender_nerf_deform.addon.export.volume_file import openvdb_module
+    from fixtures import REPO
+
+    bpy = addon
+    ckpt, _data = sphere_nerf
+    engine = [sys.executable, "-m", "blender_nerf_deform.engine"]
+    proc = subprocess.run([*engine, "bake-volume", "--nerf", str(ckpt), "--out", str(tmp_path / "npz"), "--resolution", "24"],
+                          cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    tool = [sys.executable, str(REPO / "tools" / "vdb_from_npz.py")]
+    proc = subprocess.run([*tool, str(tmp_path / "npz"), str(tmp_path / "vdb"), "--scale", "2"], cwd=REPO,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    grids = {g.name: g for g in openvdb_module().readAll(str(tmp_path / "vdb" / "rest.vdb"))[0]}
+    assert sorted(grids) == ["color", "density"] and grids["density"].activeVoxelCount() > 50
+    # Per world unit at scale 2: half the NeRF's density.
+    from blender_nerf_deform.engine.bend.baked_volume import load_baked
+
+    baked = load_baked(tmp_path / "npz" / "rest.npz")
+    assert grids["density"].evalMinMax()[1] == pytest.approx(baked.density.max() / 2, rel=1e-6)
+    volume = bpy.data.volumes.new("check")
+    volume.filepath = str(tmp_path / "vdb" / "rest.vdb")
+    assert volume.grids.load() and sorted(g.name for g in volume.grids) == ["color", "density"]
+
+    (tmp_path / "bad.npz").write_bytes(b"PK not a zip")
+    proc = subprocess.run([*tool, str(tmp_path / "bad.npz"), str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 2 and "is not a baked volume" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "out").exists()

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from blender_nerf_deform.engine.bend.cage_bend import CageBend
-from blender_nerf_deform.engine.bend.volume import (bake_box, bake_volume, box_of_bounds, load_baked, volume_grid)
+from blender_nerf_deform.engine.bend.baked_volume import box_of_bounds, load_baked, volume_grid
+from blender_nerf_deform.engine.bend.volume import bake_box, bake_volume
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.region import region_from_dict

@@ -29,7 +29,7 @@ SLAB_VOXELS = 1 << 24  # voxels per dense slab handed to OpenVDB (64 MiB of floa
 _UUID_AT, _UUID_LENGTH = 21, 36  # after the magic, file version, library version and offsets flag
 
 
-class VolumeFileError(Exception):
+class VolumeFileError(ValueError):
     pass
 
 
@@ -41,8 +41,9 @@ def openvdb_module():
             return __import__(name)
         except ImportError:
             pass
-    lib = Path(bpy.utils.system_resource("PYTHON")) / "lib"
-    for site in sorted(lib.glob("python3*/site-packages")):
+    resource = bpy.utils.system_resource("PYTHON")  # "" in some bpy wheels (4.2's, which has no OpenVDB module)
+    sites = sorted((Path(resource) / "lib").glob("python3*/site-packages")) if resource else []
+    for site in sites:
         if str(site) not in sys.path:
             sys.path.append(str(site))
         for name in ("openvdb", "pyopenvdb"):
@@ -50,7 +51,8 @@ def openvdb_module():
                 return __import__(name)
             except ImportError:
                 pass
-    raise VolumeFileError(f"this Blender ({bpy.app.version_string}) has no OpenVDB Python module to write volumes with")
+    raise VolumeFileError(f"this Blender ({bpy.app.version_string}) has no OpenVDB Python module to write volumes with "
+                          "(Blender's own builds ship one; some bpy module wheels do not)")
 
 
 def write_vdb(path, shape, index_to_local: np.ndarray, index: np.ndarray, density: np.ndarray, color: np.ndarray) -> None:

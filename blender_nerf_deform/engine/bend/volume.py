@@ -1,7 +1,8 @@
 """The NeRF as posed, sampled on a voxel grid: what `bake-volume` and the worker's `bake_volume` op run.
 
-The add-on writes the result as OpenVDB with the module Blender ships (the
-engine has no OpenVDB), so Cycles and EEVEE render the edited NeRF as a native
+The lattice and the .npz file are baked_volume.py's (pure numpy). The add-on
+writes the result as OpenVDB with the module Blender ships (the engine has no
+OpenVDB), so Cycles and EEVEE render the edited NeRF as a native
 emission-absorption volume. One grid per frame:
 
 - The lattice: cubic voxels over an oriented box (the NeRF's box, the posed
@@ -39,21 +40,14 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..errors import EngineError
-from ..files import atomic_write
 from ..geometry.region import EditRegion, check_region_in_box
-from ..memory import check_memory
+from .baked_volume import BakedVolume, VolumeGrid, box_of_bounds, check_volume_memory
 
-MAX_RESOLUTION = 2048
-# What a voxel costs while baking: density and weight (float32), colour (3 float32), masks, and the
-# sparse copy of the result (index int32 x3, density, colour).
-BYTES_PER_VOXEL = 4 + 4 + 12 + 2 + 28
 POINTS_PER_BATCH = 1 << 18  # sample points evaluated at once (bounded memory whatever the grid)
 
 _PHI = (1.0 + math.sqrt(5.0)) / 2.0
@@ -61,96 +55,6 @@ VIEW_DIRECTIONS = np.array([[0, s1, s2 * _PHI] for s1 in (-1, 1) for s2 in (-1, 
                            + [[s1, s2 * _PHI, 0] for s1 in (-1, 1) for s2 in (-1, 1)]
                            + [[s2 * _PHI, 0, s1] for s1 in (-1, 1) for s2 in (-1, 1)], dtype=np.float64)
 VIEW_DIRECTIONS /= np.linalg.norm(VIEW_DIRECTIONS, axis=1, keepdims=True)
-
-
-@dataclass(frozen=True)
-class VolumeGrid:
-    """A lattice of cubic voxels: `shape` (nx, ny, nz) and the 4x4 index → NeRF-frame map of voxel centres."""
-
-    shape: tuple[int, int, int]
-    index_to_nerf: np.ndarray
-
-    @property
-    def voxel_size(self) -> float:
-        return float(np.linalg.norm(self.index_to_nerf[:3, 0]))
-
-    @property
-    def n_voxels(self) -> int:
-        return int(np.prod(self.shape))
-
-    def points(self, ijk: np.ndarray) -> np.ndarray:
-        """NeRF-frame positions of (fractional) index coordinates (N, 3)."""
-        return ijk @ self.index_to_nerf[:3, :3].T + self.index_to_nerf[:3, 3]
-
-
-def check_resolution(resolution) -> int:
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or not 1 <= resolution <= MAX_RESOLUTION:
-        raise EngineError(f"the volume's resolution must be a whole number of voxels from 1 to {MAX_RESOLUTION} "
-                          f"along the box's longest side, got {resolution!r}")
-    return int(resolution)
-
-
-def volume_grid(box: EditRegion, resolution: int) -> VolumeGrid:
-    """Cubic voxels over the oriented `box`, `resolution` along its longest side (at least one per axis)."""
-    resolution = check_resolution(resolution)
-    voxel = float(np.max(box.size)) / resolution
-    shape = tuple(int(max(1, math.ceil(s / voxel - 1e-9))) for s in box.size)
-    lo_local = -0.5 * voxel * np.asarray(shape, dtype=np.float64)  # centred on the box
-    m = np.eye(4)
-    m[:3, :3] = box.rotation * voxel
-    m[:3, 3] = box.to_world(lo_local + 0.5 * voxel)  # voxel (0,0,0)'s centre
-    return VolumeGrid(shape, m)
-
-
-def box_of_bounds(bounds) -> EditRegion:
-    b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
-    size = b[1] - b[0]
-    if not (np.isfinite(b).all() and np.all(size > 0)):
-        raise EngineError(f"the box to bake must have a positive size on every axis, got {b.tolist()}")
-    return EditRegion(center=0.5 * (b[0] + b[1]), size=size, rotation=np.eye(3))
-
-
-def check_volume_memory(grid: VolumeGrid) -> None:
-    nx, ny, nz = grid.shape
-    check_memory(float(grid.n_voxels) * BYTES_PER_VOXEL, f"a {nx}x{ny}x{nz} volume",
-                 "bake it at a lower resolution, or over a smaller box (an edit region, or the cage's box)")
-
-
-@dataclass
-class BakedVolume:
-    """One frame's grid: the voxels that hold anything (sparse), density per NeRF unit, colour sRGB."""
-
-    grid: VolumeGrid
-    index: np.ndarray  # (N, 3) int32 voxel indices (i, j, k)
-    density: np.ndarray  # (N,) float32
-    color: np.ndarray  # (N, 3) float32 in [0, 1]
-    stats: dict
-
-    def save(self, path) -> None:
-        """An .npz written atomically (a temporary file renamed), readable with allow_pickle=False."""
-        arrays = {"shape": np.asarray(self.grid.shape, dtype=np.int64), "index_to_nerf": self.grid.index_to_nerf,
-                  "index": self.index, "density": self.density, "color": self.color}
-        atomic_write(Path(path), lambda f: np.savez_compressed(f, **arrays))
-
-
-def load_baked(path) -> BakedVolume:
-    """A baked frame's .npz, every array checked (a clear error naming the file)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("shape", "index_to_nerf", "index", "density", "color")}
-    except FileNotFoundError:
-        raise EngineError(f"baked volume {path} does not exist") from None
-    except (KeyError, ValueError, OSError, EOFError) as exc:
-        raise EngineError(f"{path} is not a baked volume (shape, index_to_nerf, index, density, color): {exc}") from None
-    shape, m, index = arrays["shape"], arrays["index_to_nerf"], arrays["index"]
-    n = len(index)
-    if (shape.shape != (3,) or (shape < 1).any() or m.shape != (4, 4) or not np.isfinite(m).all()
-            or index.ndim != 2 or index.shape[1] != 3 or arrays["density"].shape != (n,)
-            or arrays["color"].shape != (n, 3) or (n and ((index < 0).any() or (index >= shape).any()))):
-        raise EngineError(f"{path}: its arrays do not describe a baked volume (shapes or indices out of range)")
-    grid = VolumeGrid(tuple(int(s) for s in shape), m.astype(np.float64))
-    return BakedVolume(grid, index.astype(np.int32), arrays["density"].astype(np.float32),
-                       arrays["color"].astype(np.float32), {})
 
 
 def _sub_offsets(supersample: int) -> np.ndarray:

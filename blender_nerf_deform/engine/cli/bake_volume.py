@@ -19,7 +19,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..bend.posed import PosedRenderer
-from ..bend.volume import bake_box, check_resolution, check_volume_memory, volume_grid
+from ..bend.baked_volume import check_resolution, check_volume_memory, volume_grid
+from ..bend.volume import bake_box
 from ..errors import EngineError
 from ..files import check_writable
 from ..geometry.mesh_io import load_cage

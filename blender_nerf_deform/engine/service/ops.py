@@ -52,7 +52,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ..bend.posed import PosedRenderer
-from ..bend.volume import bake_box, check_volume_memory, volume_grid
+from ..bend.baked_volume import check_volume_memory, volume_grid
+from ..bend.volume import bake_box
 from ..errors import EngineError
 from ..geometry.cage import (build_cage, build_nerf_cage, build_part_cages, cut_pins, extend_vertex_labels,
                               part_cut_pins, refine_around)
