@@ -19,7 +19,8 @@ object alone through the same camera (--samples samples, no denoising): PSNR ove
 the engine in this process and written by the add-on's writer; the reference is the engine's
 render of the NeRF with every sample outside the head's box dropped (the NeRF restricted to what
 was baked), from the dataset's cameras --views (photos of the capture); Cycles renders the
-volume through a Blender camera made from the same intrinsics. Prints one JSON line per row.
+volume through a Blender camera made from the same intrinsics; PSNR over the whole photo and
+over the pixels the head covers in either. Prints one JSON line per row.
 """
 
 from __future__ import annotations
@@ -187,6 +188,10 @@ def fox_rows(args, work: Path) -> list[dict]:
                    "samples": args.samples, "image": [cam.height, cam.width],
                    "psnr_rgba_db": round(psnr(image, reference), 2),
                    "psnr_alpha_db": round(psnr(image[..., 3], reference[..., 3]), 2)}
+            # The head covers a part of the photo: also over the pixels either image covers.
+            covered = (image[..., 3] > 0.01) | (reference[..., 3] > 0.01)
+            row["covered_pixels"] = int(covered.sum())
+            row["psnr_rgba_covered_db"] = round(psnr(image[covered], reference[covered]), 2)
             print(json.dumps(row), flush=True)
             rows.append(row)
         bpy.data.objects.remove(volume)
