@@ -48,6 +48,7 @@ from fixtures.floor_data import floor_nerf  # noqa: E402,F401  (a statue on a fl
 # long module alone. The Makefile passes --no-loadscope-reorder: by default xdist queues the modules
 # with the most tests first, which put the floor NeRF's few tests (a 3-minute fixture) last.
 SLOW_FIRST = ("engine/test_stretch_fidelity.py", "engine/test_region_floor.py", "addon/test_demo.py",
+              "addon/test_bake_volume.py",
               "engine/test_worker_side_requests.py", "addon/test_worker_setup.py", "engine/test_geometry_cli.py",
               "engine/test_unbounded.py", "engine/test_hostile_input.py", "engine/test_nerf_train.py",
               "addon/test_train_nerf.py", "addon/test_animation_cli.py", "addon/test_training_preview.py",
