@@ -47,7 +47,6 @@ def _posed_sphere(bpy, sphere_nerf, size=40):
     handle.rotation_euler.x += 0.4
     handle.keyframe_insert("location", frame=2)
     handle.keyframe_insert("rotation_euler", frame=2)
-    nerf.nerf_deform.cage.hide_render = True
     return nerf, camera
 
 
@@ -88,6 +87,27 @@ def test_baked_volume_renders_in_cycles_as_the_nerf_deform_engine_renders_it(add
     scene.frame_set(2)
     api.bake_volume(nerf, str(tmp_path / "alone"), resolution=96)
     assert (tmp_path / "alone" / f"{stem}_0002.vdb").read_bytes() == (tmp_path / "vdb" / f"{stem}_0002.vdb").read_bytes()
+
+    # Cage Modifiers (a Simple Deform bend on the cage) and a NeRF object scaled by 1.5, the camera moved
+    # with it: the posed cage's box, density per world unit, the same picture as F12.
+    cage = nerf.nerf_deform.cage
+    bend = cage.modifiers.new("Bend", "SIMPLE_DEFORM")
+    bend.deform_method, bend.angle, bend.deform_axis = "BEND", 0.7, "Z"
+    nerf.nerf_deform.deformation_mode = "MODIFIERS"
+    assert np.allclose(np.array(nerf.matrix_world), np.eye(4))
+    nerf.scale = (1.5, 1.5, 1.5)
+    scene.camera.location = scene.camera.location * 1.5  # the same view of the NeRF, from 1.5x as far
+    scene.frame_set(1)
+    nerf.hide_render, volume.hide_render = False, True
+    scene.render.engine = "NERF_DEFORM"
+    reference = render_exr_passes(bpy, tmp_path / "engine_modifiers.exr")["Combined"]
+    assert _psnr(reference, references[1]) < 30  # the bend shows
+    volume = api.bake_volume(nerf, str(tmp_path / "modifiers"), resolution=96, extent="CAGE")
+    nerf.hide_render, volume.hide_render = True, False
+    _cycles(bpy)
+    cycles = render_exr_passes(bpy, tmp_path / "cycles_modifiers.exr")["Combined"]
+    assert _psnr(cycles[..., 3], reference[..., 3]) >= 26
+    assert _psnr(cycles, reference) >= 21
 
 
 def test_meshes_and_the_volume_occlude_each_other_and_the_lit_volume_casts_a_shadow(addon, sphere_nerf, tmp_path):

@@ -15,7 +15,7 @@ def test_build_cage_stores_a_cage_that_embeds_the_surface(addon):
     nerf, surface = nerf_with_sphere_surface(bpy)
     assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
     cage = nerf.nerf_deform.cage
-    assert cage is not None and cage.parent == nerf and cage.nerf_deform.role == "CAGE" and cage.hide_render
+    assert cage is not None and cage.parent == nerf and cage.nerf_deform.role == "CAGE" and not cage.visible_camera and not cage.visible_shadow
     rest, tets = load_cage(cage.data)
     assert len(tets) > 10 and (signed_volumes(rest, tets) > 0).all()
     tet_ids, weights = load_embedding(surface.data)

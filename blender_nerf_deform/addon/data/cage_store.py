@@ -179,6 +179,14 @@ def cage_pins(cage_object: bpy.types.Object) -> np.ndarray:
 def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
     """Cage vertices after the cage object's modifiers (Armature, Lattice, ...), in its local frame."""
     evaluated = cage_object.evaluated_get(depsgraph)
+    if cage_object.modifiers and depsgraph.objects.get(cage_object.name) is None:
+        # Not in this depsgraph (a render's leaves out hide_render objects and excluded collections):
+        # its modifiers were not evaluated, and rendering the rest pose instead would be silently wrong.
+        raise CageDataError(
+            f"cage '{cage_object.name}' is left out of this render or view (disabled in renders, hidden, or its "
+            "collection excluded), so its modifiers cannot deform the NeRF: enable it again (Build Cage keeps it "
+            "invisible to render engines by its ray visibility; show it as Wire or Bounds to unclutter the view)"
+        )
     mesh = evaluated.to_mesh()
     try:
         n = len(mesh.vertices)

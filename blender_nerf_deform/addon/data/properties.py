@@ -172,6 +172,19 @@ def to_nerf_frame(nerf: bpy.types.Object, matrix_world=None):
         ) from None
 
 
+RAY_VISIBILITY = ("visible_camera", "visible_diffuse", "visible_glossy", "visible_transmission",
+                  "visible_volume_scatter", "visible_shadow")
+
+
+def keep_out_of_renders(obj: bpy.types.Object) -> None:
+    """Hide a NeRF part (the cage) from every render engine's image while keeping it in render
+    depsgraphs: F12 reads the cage's modifiers from the render's own depsgraph, which leaves out
+    `hide_render` objects (their modifiers would silently not apply). Ray visibility off instead."""
+    obj.hide_render = False
+    for flag in RAY_VISIBILITY:
+        setattr(obj, flag, False)
+
+
 def owning_nerf(obj: bpy.types.Object | None) -> bpy.types.Object | None:
     """The NeRF object `obj` belongs to (itself, its parent for surface/cage, its owner for handles and regions);
     None for a deleted object or one whose NeRF was deleted."""

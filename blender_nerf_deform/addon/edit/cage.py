@@ -13,7 +13,7 @@ import numpy as np
 from ..data.cage_store import cage_vertex_parts, store_cage, store_cut_pins, store_embedding
 from ..data.mesh_attributes import cut_flags, part_labels, set_part_labels
 from ..data.paths import checkpoint_path
-from ..data.properties import OnNeRF, alive, alive_object, forget_deleted, owning_nerf
+from ..data.properties import OnNeRF, alive, alive_object, forget_deleted, keep_out_of_renders, owning_nerf
 from ..data.properties import PREVIEW_KEY
 from ..worker.jobs import WorkerOperator
 from .regions import edit_regions_of, extracted_regions, same_regions
@@ -115,7 +115,7 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
             cage.parent = nerf
             cage.nerf_deform.role = "CAGE"
             cage.display_type = "WIRE"
-            cage.hide_render = True
+            keep_out_of_renders(cage)
             s.cage = cage
         store_cage(cage.data, arrays["vertices"], arrays["tets"])
         store_embedding(surface.data, arrays["tet_ids"], arrays["weights"])
@@ -155,4 +155,23 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
 
 
 _classes = (NERFDEFORM_OT_build_cage,)
-register, unregister = bpy.utils.register_classes_factory(_classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
+
+
+@bpy.app.handlers.persistent
+def _cages_into_render_depsgraphs(*_args) -> None:
+    """Cages built before `keep_out_of_renders` were `hide_render`: F12 never saw their modifiers."""
+    for obj in bpy.data.objects:
+        if obj.nerf_deform.role == "CAGE" and obj.hide_render and obj.library is None:
+            keep_out_of_renders(obj)
+
+
+def register():
+    _register_classes()
+    bpy.app.handlers.load_post.append(_cages_into_render_depsgraphs)
+
+
+def unregister():
+    if _cages_into_render_depsgraphs in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_cages_into_render_depsgraphs)
+    _unregister_classes()
