@@ -24,6 +24,49 @@ if backend.HAVE_NUMBA:  # without numba ARAP runs libigl's solver
 if backend.HAVE_NUMBA:
 
     @njit(inline="always")
+    def _horn_matrix(U, T, W, E, t, S, A):
+        """Tet t's covariance S = sum over its edges of w (v_i - v_j)(u_i - u_j)^T (rest edges E, weights
+        W, deformed vertices U) and Horn's symmetric 4x4 A of S: its top eigenvector is the quaternion
+        of the rotation that best maps the rest edges onto the deformed ones."""
+        for a in range(3):
+            for b in range(3):
+                S[a, b] = 0.0
+        for e in range(6):
+            i = T[t, _E0[e]]
+            j = T[t, _E1[e]]
+            w = W[t, e]
+            for a in range(3):  # S = sum w (v_i - v_j)(u_i - u_j)^T: source x target
+                va = w * E[t, e, a]
+                for b in range(3):
+                    S[a, b] += va * (U[i, b] - U[j, b])
+        sxx, sxy, sxz = S[0, 0], S[0, 1], S[0, 2]
+        syx, syy, syz = S[1, 0], S[1, 1], S[1, 2]
+        szx, szy, szz = S[2, 0], S[2, 1], S[2, 2]
+        A[0, 0] = sxx + syy + szz
+        A[0, 1] = A[1, 0] = syz - szy
+        A[0, 2] = A[2, 0] = szx - sxz
+        A[0, 3] = A[3, 0] = sxy - syx
+        A[1, 1] = sxx - syy - szz
+        A[1, 2] = A[2, 1] = sxy + syx
+        A[1, 3] = A[3, 1] = szx + sxz
+        A[2, 2] = -sxx + syy - szz
+        A[2, 3] = A[3, 2] = syz + szy
+        A[3, 3] = -sxx - syy + szz
+
+    @njit(inline="always")
+    def _quaternion_rotation(q0, q1, q2, q3, R):
+        """R = the rotation of the unit quaternion (q0, q1, q2, q3)."""
+        R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
+        R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+        R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+        R[1, 0] = 2.0 * (q1 * q2 + q0 * q3)
+        R[1, 1] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3
+        R[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+        R[2, 0] = 2.0 * (q1 * q3 - q0 * q2)
+        R[2, 1] = 2.0 * (q2 * q3 + q0 * q1)
+        R[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
+
+    @njit(inline="always")
     def _jacobi_top_eigenvector(A, Q):
         """Eigenvector of the largest eigenvalue of the symmetric 4x4 A (overwritten), into Q[:, k]; returns k.
 
@@ -89,43 +132,12 @@ if backend.HAVE_NUMBA:
             S = np.empty((3, 3))
             R = np.empty((3, 3))
             for t in range(chunk * m // n_chunks, (chunk + 1) * m // n_chunks):
-                for a in range(3):
-                    for b in range(3):
-                        S[a, b] = 0.0
-                for e in range(6):
-                    i = T[t, _E0[e]]
-                    j = T[t, _E1[e]]
-                    w = W[t, e]
-                    for a in range(3):  # S = sum w (v_i - v_j)(u_i - u_j)^T: source x target
-                        va = w * E[t, e, a]
-                        for b in range(3):
-                            S[a, b] += va * (U[i, b] - U[j, b])
-                sxx, sxy, sxz = S[0, 0], S[0, 1], S[0, 2]
-                syx, syy, syz = S[1, 0], S[1, 1], S[1, 2]
-                szx, szy, szz = S[2, 0], S[2, 1], S[2, 2]
-                A[0, 0] = sxx + syy + szz
-                A[0, 1] = A[1, 0] = syz - szy
-                A[0, 2] = A[2, 0] = szx - sxz
-                A[0, 3] = A[3, 0] = sxy - syx
-                A[1, 1] = sxx - syy - szz
-                A[1, 2] = A[2, 1] = sxy + syx
-                A[1, 3] = A[3, 1] = szx + sxz
-                A[2, 2] = -sxx + syy - szz
-                A[2, 3] = A[3, 2] = syz + szy
-                A[3, 3] = -sxx - syy + szz
+                _horn_matrix(U, T, W, E, t, S, A)
                 k = _jacobi_top_eigenvector(A, Q)
                 q0, q1, q2, q3 = Q[0, k], Q[1, k], Q[2, k], Q[3, k]
                 nq = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
                 q0, q1, q2, q3 = q0 / np.sqrt(nq), q1 / np.sqrt(nq), q2 / np.sqrt(nq), q3 / np.sqrt(nq)
-                R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
-                R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
-                R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
-                R[1, 0] = 2.0 * (q1 * q2 + q0 * q3)
-                R[1, 1] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3
-                R[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
-                R[2, 0] = 2.0 * (q1 * q3 - q0 * q2)
-                R[2, 1] = 2.0 * (q2 * q3 + q0 * q1)
-                R[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
+                _quaternion_rotation(q0, q1, q2, q3, R)
                 for c in range(4):
                     for a in range(3):
                         corner_rhs[t, c, a] = 0.0

@@ -19,7 +19,7 @@ from .arap_kernels import _E0, _E1
 if backend.HAVE_NUMBA:
     from numba import njit
 
-    from .arap_kernels import _jacobi_top_eigenvector
+    from .arap_kernels import _horn_matrix, _jacobi_top_eigenvector, _quaternion_rotation
 
     @njit(inline="always")
     def _cofactor(M, r, c):
@@ -103,45 +103,14 @@ if backend.HAVE_NUMBA:
         B[:] = 0.0
         total = 0.0
         for t in range(T.shape[0]):
-            for a in range(3):
-                for b in range(3):
-                    S[a, b] = 0.0
-            for e in range(6):
-                i = T[t, _E0[e]]
-                j = T[t, _E1[e]]
-                w = W[t, e]
-                for a in range(3):  # S = sum w (v_i - v_j)(u_i - u_j)^T: source x target
-                    va = w * E[t, e, a]
-                    for b in range(3):
-                        S[a, b] += va * (U[i, b] - U[j, b])
-            sxx, sxy, sxz = S[0, 0], S[0, 1], S[0, 2]
-            syx, syy, syz = S[1, 0], S[1, 1], S[1, 2]
-            szx, szy, szz = S[2, 0], S[2, 1], S[2, 2]
-            A[0, 0] = sxx + syy + szz
-            A[0, 1] = A[1, 0] = syz - szy
-            A[0, 2] = A[2, 0] = szx - sxz
-            A[0, 3] = A[3, 0] = sxy - syx
-            A[1, 1] = sxx - syy - szz
-            A[1, 2] = A[2, 1] = sxy + syx
-            A[1, 3] = A[3, 1] = szx + sxz
-            A[2, 2] = -sxx + syy - szz
-            A[2, 3] = A[3, 2] = syz + szy
-            A[3, 3] = -sxx - syy + szz
+            _horn_matrix(U, T, W, E, t, S, A)
             if not _qcp_top_eigenvector(A, M, q):
                 k = _jacobi_top_eigenvector(A, M)  # overwrites A; the eigenvectors into M's columns
                 for c in range(4):
                     q[c] = M[c, k]
             nq = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
             q0, q1, q2, q3 = q[0] / nq, q[1] / nq, q[2] / nq, q[3] / nq
-            R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
-            R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
-            R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
-            R[1, 0] = 2.0 * (q1 * q2 + q0 * q3)
-            R[1, 1] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3
-            R[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
-            R[2, 0] = 2.0 * (q1 * q3 - q0 * q2)
-            R[2, 1] = 2.0 * (q2 * q3 + q0 * q1)
-            R[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
+            _quaternion_rotation(q0, q1, q2, q3, R)
             for e in range(6):
                 i = T[t, _E0[e]]
                 j = T[t, _E1[e]]
