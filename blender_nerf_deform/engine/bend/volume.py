@@ -46,6 +46,7 @@ import torch
 
 from ..errors import EngineError
 from ..geometry.region import EditRegion, check_region_in_box
+from ..nerf.renderer import _blocked_color, _blocked_density  # the renderer's own field evaluation, block by block
 from .baked_volume import BakedVolume, VolumeGrid, box_of_bounds, check_volume_memory
 
 POINTS_PER_BATCH = 1 << 18  # sample points evaluated at once (bounded memory whatever the grid)
@@ -149,7 +150,7 @@ class _VoxelSampler:
             scale = torch.ones(len(pts), device=dev)
             rotation = torch.eye(3, device=dev).expand(len(pts), 3, 3)
         pts, scale, rotation, owner = pts[keep], scale[keep], rotation[keep], owner[keep]
-        sigma, geo = _density(self.model, pts) if len(pts) else (pts.new_zeros(0), None)
+        sigma, geo = _blocked_density(self.model, pts) if len(pts) else (pts.new_zeros(0), None)
         sigma = sigma * scale
         dense = sigma > 0
         if not skip_empty:
@@ -174,15 +175,6 @@ def _outward_normals(density: np.ndarray, index: np.ndarray, grid: VolumeGrid) -
     return np.where(length > 1e-12, outward / np.maximum(length, 1e-30), 0.0).astype(np.float32)
 
 
-def _density(model, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    sigma, geo = [], []
-    for s in range(0, len(points), 1 << 16):
-        a, b = model.density_and_features(points[s: s + (1 << 16)])
-        sigma.append(a)
-        geo.append(b)
-    return torch.cat(sigma), torch.cat(geo)
-
-
 def _seen_color(model, geo: torch.Tensor, rotation: torch.Tensor, outward: torch.Tensor) -> torch.Tensor:
     """(N, 3): each point's colour as seen head-on from outside: looking along -`outward`; where
     `outward` is zero (inside a solid, no gradient) the mean over VIEW_DIRECTIONS. Directions turn
@@ -191,19 +183,14 @@ def _seen_color(model, geo: torch.Tensor, rotation: torch.Tensor, outward: torch
     out = geo.new_zeros(len(geo), 3)
     if head_on.any():
         d = torch.einsum("bij,bj->bi", rotation[head_on], -outward[head_on])
-        out[head_on] = _blocked(model, geo[head_on], d)
+        out[head_on] = _blocked_color(model, geo[head_on], d)
     if (~head_on).any():
         g, r = geo[~head_on], rotation[~head_on]
         dirs = torch.as_tensor(VIEW_DIRECTIONS, dtype=torch.float32, device=geo.device)
         k = len(dirs)
         rest_dirs = torch.einsum("bij,kj->bki", r, dirs).reshape(-1, 3)
-        out[~head_on] = _blocked(model, g.repeat_interleave(k, dim=0), rest_dirs).reshape(len(g), k, 3).mean(1)
+        out[~head_on] = _blocked_color(model, g.repeat_interleave(k, dim=0), rest_dirs).reshape(len(g), k, 3).mean(1)
     return out
-
-
-def _blocked(model, geo: torch.Tensor, dirs: torch.Tensor, block: int = 1 << 16) -> torch.Tensor:
-    return torch.cat([model.color(geo[s: s + block], dirs[s: s + block]) for s in range(0, len(geo), block)]) \
-        if len(geo) else geo.new_zeros(0, 3)
 
 
 def _shell_colors(color: np.ndarray, filled: np.ndarray) -> np.ndarray:
