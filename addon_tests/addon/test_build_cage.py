@@ -85,6 +85,7 @@ def test_building_a_cage_writes_nothing_into_the_working_directory(tmp_path, mon
 _BUILD_TWICE = """
 ckpt, blend = {ckpt!r}, {blend!r}
 from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
+from blender_nerf_deform.addon.data.properties import handles_of
 
 assert bpy.ops.nerf_deform.load_nerf(filepath=ckpt) == {{"FINISHED"}}
 nerf = bpy.context.active_object
@@ -110,9 +111,20 @@ top = np.flatnonzero(z > z.min() + 0.75 * np.ptp(z))
 select(surface, top)
 assert bpy.ops.nerf_deform.add_handle() == {{"FINISHED"}}
 bpy.context.active_object.location.z += 0.15
+band = np.flatnonzero((z > z.min() + 0.35 * np.ptp(z)) & (z < z.min() + 0.55 * np.ptp(z)))
+select(surface, band)  # a second handle below the first: on the cage as built they lean on the same cage vertices
+assert bpy.ops.nerf_deform.add_handle() == {{"FINISHED"}}
 bpy.context.view_layer.update()
-build()  # with a handle, and its preview shape key
+build()  # with handles, and a preview shape key
 build()
+# Build Cage separates the handles' regions as Add Handle does (issue 30).
+from blender_nerf_deform.addon.deform.handles import group_vertices
+from blender_nerf_deform.engine.geometry.cage_refine import shared_vertices
+
+rest, tets = load_cage(nerf.nerf_deform.cage.data)
+tet_ids, weights = load_embedding(surface.data)
+regions = [group_vertices(surface, h.nerf_deform.region) for h in handles_of(nerf)]
+assert len(regions) == 2 and len(shared_vertices(tets, tet_ids, weights, regions)) == 0
 camera()
 bpy.ops.wm.save_as_mainfile(filepath=blend)
 print("CAGE VERTICES", counts)
@@ -142,5 +154,6 @@ def test_building_the_cage_again_then_saving_reopening_and_rendering_in_fresh_pr
     blend, png = tmp_path / "rebuilt.blend", tmp_path / "frame.png"
     out = assert_clean(run_blender(SCENE_HELPERS + _BUILD_TWICE.format(ckpt=str(ckpt), blend=str(blend)), cwd=tmp_path))
     assert "CAGE VERTICES" in out
+    assert "regions meet" in out  # Build Cage refined the cage between the two handles (issue 30)
     out = assert_clean(run_blender(SCENE_HELPERS + _REOPEN_AND_RENDER.format(blend=str(blend), png=str(png)), cwd=tmp_path))
     assert float(out.split("ALPHA")[-1].split()[0]) > 0.5

@@ -158,3 +158,95 @@ def test_a_regions_vertices_are_the_meshs_own_after_reused_memory_and_edit_mode_
     bpy.ops.object.vertex_group_assign()
     bpy.ops.object.mode_set(mode="OBJECT")
     assert np.array_equal(region_vertices(obj, "Handle"), [0, 1, 2, 5, 6])
+
+
+def _grid_nerf_with_box_cage(bpy):
+    """The grid surface embedded in a stored 2x2x2-cell box cage (cells 0.6 wide, so neighbouring
+    layers of the grid, 0.25 apart, lean on the same cage vertices), its bottom layer pinned at a
+    cut, and an artist's vertex group on the cage whose weight is linear in x."""
+    from blender_nerf_deform.addon.data.cage_store import store_cage, store_cut_pins, store_embedding
+    from blender_nerf_deform.engine.geometry.cage import box_cage
+    from blender_nerf_deform.engine.geometry.embedding import embed_points
+
+    nerf, surface, verts = nerf_with_grid_surface(bpy)
+    V, T = box_cage((2, 2, 2), lo=(-0.6, -0.6, -0.6), hi=(0.6, 0.6, 0.6))
+    cage = bpy.data.objects.new("NeRF Cage", bpy.data.meshes.new("NeRF Cage"))
+    bpy.context.scene.collection.objects.link(cage)
+    cage.parent, cage.nerf_deform.role = nerf, "CAGE"
+    nerf.nerf_deform.cage = cage
+    store_cage(cage.data, V, T)
+    embedding = embed_points(verts, V, T)
+    store_embedding(surface.data, embedding.tet_ids, embedding.weights)
+    cut = np.flatnonzero(V[:, 2] < -0.5)
+    store_cut_pins(cage, cut)
+    group = cage.vertex_groups.new(name="Artist")
+    for i, x in enumerate(V[:, 0]):
+        group.add([i], 0.25 + 0.5 * (x + 0.6) / 1.2, "REPLACE")
+    return nerf, surface, verts, cage, V, T, cut
+
+
+def test_a_handle_next_to_another_refines_the_stored_cage_where_they_meet(addon):
+    """Issue 30: two handles whose surface vertices lean on the same cage vertices cannot both follow
+    their transforms; Add Handle refines the cage there, re-embeds the surface at the same rest
+    positions and carries the cut's pins and the cage's vertex groups over."""
+    bpy = addon
+    from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage, load_embedding
+    from blender_nerf_deform.addon.data.properties import PIN_GROUP
+    from blender_nerf_deform.addon.deform.handles import group_vertices
+    from blender_nerf_deform.engine.geometry.cage_refine import shared_vertices
+
+    nerf, surface, verts, cage, V, T, cut = _grid_nerf_with_box_cage(bpy)
+    top = np.flatnonzero(verts[:, 2] > 0.4)
+    select_in_edit_mode(bpy, surface, top)
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    assert len(load_cage(cage.data)[1]) == len(T)  # one region alone: nothing to separate
+
+    below = np.flatnonzero(np.abs(verts[:, 2] - 0.0) < 0.01)  # the middle layer, 0.5 below the top
+    select_in_edit_mode(bpy, surface, below)
+    assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    rest, tets = load_cage(cage.data)
+    tet_ids, weights = load_embedding(surface.data)
+    assert len(tets) > len(T) and len(cage.data.vertices) == len(rest)
+    assert np.array_equal(rest[: len(V)], V)
+    assert np.abs(np.einsum("nk,nkc->nc", weights, rest[tets[tet_ids]]) - verts).max() < 1e-6  # same rest surface
+    assert len(shared_vertices(tets, tet_ids, weights, [top, below])) == 0
+    pins = cage_pins(cage)
+    assert np.isin(cut, pins).all() and np.allclose(rest[pins, 2], -0.6)  # the cut's pins, on the bottom face
+    assert sorted(v.index for v in cage.data.vertices if v.groups) == list(range(len(rest)))
+    group = cage.vertex_groups["Artist"]
+    artist = np.array([group.weight(i) for i in range(len(rest))])
+    assert np.allclose(artist, 0.25 + 0.5 * (rest[:, 0] + 0.6) / 1.2, atol=1e-6)  # linear, carried along edges
+
+    # A pin next to the middle handle: the cage is refined again where they meet.
+    n_tets = len(tets)
+    select_in_edit_mode(bpy, surface, np.flatnonzero(np.abs(verts[:, 2] + 0.25) < 0.01))
+    assert bpy.ops.nerf_deform.pin_selection() == {"FINISHED"}
+    bpy.ops.object.mode_set(mode="OBJECT")
+    rest, tets = load_cage(cage.data)
+    tet_ids, weights = load_embedding(surface.data)
+    assert len(tets) > n_tets
+    assert len(shared_vertices(tets, tet_ids, weights, [top, below], group_vertices(surface, PIN_GROUP),
+                               cage_pins(cage))) == 0
+
+
+@pytest.mark.parametrize("case", ["modifier", "too close"])
+def test_a_cage_that_cannot_be_refined_usefully_is_left_as_built(addon, case):
+    """A cage deformed by modifiers (Cage Modifiers mode) needs its vertices as built; regions one grid
+    step apart (0.25, where the refined tets would still be 0.5 long) cannot be parted by refining,
+    which would only multiply the tets. The handle is made either way; the cage stays as built."""
+    bpy = addon
+    from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
+    from blender_nerf_deform.addon.data.properties import handles_of
+
+    nerf, surface, verts, cage, V, T, _cut = _grid_nerf_with_box_cage(bpy)
+    embedding = load_embedding(surface.data)
+    if case == "modifier":
+        cage.modifiers.new("Bend", "SIMPLE_DEFORM")
+    second = np.abs(verts[:, 2]) < 0.01 if case == "modifier" else np.abs(verts[:, 2] - 0.25) < 0.01
+    for layer in (verts[:, 2] > 0.4, second):
+        select_in_edit_mode(bpy, surface, np.flatnonzero(layer))
+        assert bpy.ops.nerf_deform.add_handle() == {"FINISHED"}
+    assert len(handles_of(nerf)) == 2
+    rest, tets = load_cage(cage.data)
+    assert np.array_equal(rest, V) and np.array_equal(tets, T)
+    assert all(np.array_equal(a, b) for a, b in zip(load_embedding(surface.data), embedding))

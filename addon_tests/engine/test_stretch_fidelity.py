@@ -11,7 +11,8 @@ import pytest
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import boundary_faces, signed_volumes
-from blender_nerf_deform.engine.geometry.cage import box_cage, extend_vertex_labels, refine_around, refine_cage
+from blender_nerf_deform.engine.geometry.cage import box_cage
+from blender_nerf_deform.engine.geometry.cage_refine import extend_vertex_labels, refine_around, refine_cage
 from fixtures import REPO
 
 sys.path.insert(0, str(REPO / "tools" / "bench"))

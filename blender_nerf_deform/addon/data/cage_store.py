@@ -35,9 +35,12 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ...engine.errors import EngineError
 from ...engine.geometry.barycentric import boundary_faces
+from ...engine.geometry.cage_refine import separate_regions as separate_cage_regions, shared_vertices
 from ...engine.service.protocol import content_key
-from .properties import CageDataError, to_nerf_frame
+from .mesh_attributes import part_labels, set_part_labels, vertex_group_members, vertex_group_weights
+from .properties import PIN_GROUP, CageDataError, handles_of, to_nerf_frame
 
 REST_KEY = "nerf_deform_rest_vertices"
 TETS_KEY = "nerf_deform_tets"
@@ -267,3 +270,57 @@ def shared_embedding(mesh: bpy.types.Mesh) -> tuple[str, callable]:
         load_embedding(mesh)  # raises the error that says what is wrong
     key = _stored_key(mesh, EMBED_CONTENT_KEY, load_embedding)
     return key, lambda: dict(zip(("tet_ids", "weights"), load_embedding(mesh)))
+
+
+def separate_regions(nerf: bpy.types.Object) -> list[tuple[str, str]]:
+    """Refine `nerf`'s stored cage where two of its regions (handles, the pinned region and the
+    cut's pins) lean on the same cage vertices, re-embed its surface and carry the cage's pins,
+    part labels and vertex groups over (engine.geometry.cage_refine.separate_regions says why).
+    Returns the (level, message) lines to report; nothing happens (and nothing is reported) when no
+    cage vertex is shared or the NeRF has no cage yet (Build Cage calls this too). The cage stays as
+    built, with a warning that says why, when the regions are too close to part by refining (it
+    would multiply the tets for nothing) or its modifiers or shape keys need its vertices."""
+    s = nerf.nerf_deform
+    surface, cage = s.surface, s.cage
+    if surface is None or cage is None or not has_cage(cage.data) or EMBED_TET_KEY not in surface.data:
+        return []
+    handles = handles_of(nerf)
+    if not handles:
+        return []
+    members = vertex_group_members(surface)
+    regions = [members.get(h.nerf_deform.region, np.zeros(0, np.int64)) for h in handles]
+    pinned = members.get(PIN_GROUP, np.zeros(0, np.int64))
+    rest, tets = load_cage(cage.data)
+    tet_ids, weights = load_embedding(surface.data)
+    pins = cage_pins(cage)
+    if not len(shared_vertices(tets, tet_ids, weights, regions, pinned, pins)):
+        return []
+    if cage.data.shape_keys is not None or cage.modifiers:
+        return [("WARNING", f"{cage.name} is not refined where {nerf.name}'s regions meet: its "
+                            f"{'shape keys' if cage.data.shape_keys is not None else 'modifiers'} need its vertices as "
+                            "built, so handles next to each other may stray from their transform by a few percent")]
+    try:
+        separated = separate_cage_regions(rest, tets, tet_ids, weights, regions, pinned, pins)
+    except EngineError as error:  # the cage is kept as it was, and so is the new region
+        return [("WARNING", f"{cage.name} is not refined where {nerf.name}'s regions meet: {error}")]
+    if separated.shared_after:
+        # Regions closer than the refined tets: refining would multiply the tets (and every frame's
+        # solve) without letting each region follow its own handle.
+        return [("WARNING", f"{nerf.name}'s regions are too close to part on {cage.name} ({separated.shared_before} cage "
+                            f"vertices move two regions at once): leave a band of unselected vertices about "
+                            f"{2 * separated.edge:.2g} wide (NeRF units) between handles, and between a handle and "
+                            "the pinned region, so that each region follows its own handle (a few percent off now)")]
+    groups = {name: w for name, w in vertex_group_weights(cage).items() if name != CUT_PIN_GROUP}
+    part = part_labels(cage.data)
+    store_cage(cage.data, separated.vertices, separated.tets)
+    store_embedding(surface.data, separated.tet_ids, separated.weights)
+    store_cut_pins(cage, separated.cage_pins)
+    if part is not None and len(part) == len(rest):
+        set_part_labels(cage.data, np.rint(separated.bisection.extend_values(part)).astype(np.int32))
+    for name, w in groups.items():  # an artist's groups, linear along each split edge (new geometry: new groups)
+        group = cage.vertex_groups.get(name) or cage.vertex_groups.new(name=name)
+        values = separated.bisection.extend_values(w)
+        for weight in np.unique(values[values > 0]):
+            group.add(np.flatnonzero(values == weight).tolist(), float(weight), "REPLACE")
+    return [("INFO", f"{cage.name}: refined where {nerf.name}'s regions meet ({separated.shared_before} cage vertices "
+                     f"shared): {len(tets)} -> {len(separated.tets)} tets")]

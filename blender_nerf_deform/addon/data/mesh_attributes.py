@@ -57,3 +57,24 @@ def set_part_labels(mesh: bpy.types.Mesh, part: np.ndarray | None) -> None:
 def part_labels(mesh: bpy.types.Mesh) -> np.ndarray | None:
     """The mesh's part labels (int per vertex), or None (see `_point_values`)."""
     return _point_values(mesh, PART_ATTRIBUTE, "INT", np.int32)
+
+
+def vertex_group_members(obj: bpy.types.Object) -> dict[str, np.ndarray]:
+    """The vertices (indices, weight > 0) of each of `obj`'s vertex groups, by group name, in one
+    pass over the mesh (there is no bulk reader of vertex-group weights in bpy)."""
+    members: list[list[int]] = [[] for _ in obj.vertex_groups]
+    for v in obj.data.vertices:
+        for g in v.groups:
+            if g.weight > 0 and g.group < len(members):
+                members[g.group].append(v.index)
+    return {group.name: np.array(members[group.index], dtype=np.int64) for group in obj.vertex_groups}
+
+
+def vertex_group_weights(obj: bpy.types.Object) -> dict[str, np.ndarray]:
+    """Each vertex group of `obj` as one weight per vertex (0 where a vertex is not in it)."""
+    weights = np.zeros((len(obj.vertex_groups), len(obj.data.vertices)))
+    for v in obj.data.vertices:
+        for g in v.groups:
+            if g.group < len(weights):
+                weights[g.group, v.index] = g.weight
+    return {group.name: weights[group.index] for group in obj.vertex_groups}

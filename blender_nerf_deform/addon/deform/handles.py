@@ -15,6 +15,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 from mathutils import Matrix
 
+from ..data.cage_store import separate_regions
 from ..data.mesh_attributes import part_labels
 from ..data.properties import (OnNeRF, PIN_GROUP, add_app_handlers, alive, handles_of, owning_nerf, remove_app_handlers,
                          select_only, to_nerf_frame)
@@ -129,6 +130,17 @@ def _add_to_group(surface: bpy.types.Object, group_name: str, vertices: np.ndarr
     return group
 
 
+def _separate(operator, nerf) -> None:
+    """Where the new region and another lean on the same cage vertices, refine the cage there
+    (cage_store.separate_regions): a cage vertex cannot follow two handles' transforms."""
+    try:
+        lines = separate_regions(nerf)
+    except ValueError as error:  # a cage or embedding that no longer matches its mesh: said, region kept
+        lines = [("WARNING", f"the cage was not refined where the regions meet: {error}")]
+    for level, line in lines:
+        operator.report({level}, line)
+
+
 class _SelectionOperator:
     """Operators on the vertices selected in Edit Mode on a NeRF's extracted mesh."""
 
@@ -206,6 +218,7 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
         if len(spanned) > 1:
             self.report({"WARNING"}, f"{handle.name}'s vertices span the objects of {len(spanned)} edit regions "
                                      f"(parts {', '.join(str(int(i) + 1) for i in spanned)}): it moves each of them")
+        _separate(self, nerf)
         return {"FINISHED"}
 
 
@@ -225,6 +238,7 @@ class NERFDEFORM_OT_pin_selection(_SelectionOperator, bpy.types.Operator):
             return {"CANCELLED"}
         _add_to_group(surface, PIN_GROUP, vertices)
         self.report({"INFO"}, f"Pinned {len(vertices)} vertices")
+        _separate(self, nerf)
         return {"FINISHED"}
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from ..data.cage_store import cage_vertex_parts, store_cage, store_cut_pins, store_embedding
+from ..data.cage_store import cage_vertex_parts, separate_regions, store_cage, store_cut_pins, store_embedding
 from ..data.mesh_attributes import cut_flags, part_labels, set_part_labels
 from ..data.paths import checkpoint_path
 from ..data.properties import OnNeRF, alive, alive_object, forget_deleted, keep_out_of_renders, owning_nerf
@@ -151,6 +151,8 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
             self.report({"WARNING"}, f"{cage.name}: {self._note}")
         for line in result.get("warnings", []):
             self.report({"WARNING"}, f"{cage.name}: {line}")
+        for level, line in separate_regions(nerf):  # handles made before this cage
+            self.report({level}, line)
         return {"FINISHED"}
 
 

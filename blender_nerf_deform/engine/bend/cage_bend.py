@@ -14,7 +14,7 @@ Every ray sample in deformed space is decided on its own (not per grid cell):
   for an identity pose); with `refine_step` (off by default, see __init__), where
   a pose compresses the content by more than STEP_REFINE_FROM, frames march with
   a finer step (`render_kwargs`), so a squashed shell is not stepped over. Strong smooth stretches need a cage fine
-  enough to follow them: `geometry.cage.refine_cage` (`cage --refine-edge`);
+  enough to follow them: `geometry.cage_refine.refine_cage` (`cage --refine-edge`);
 - outside the deformed cage but inside the rest cage: empty (density 0), so
   space an edit vacates shows the background, not a ghost of the original;
 - outside both: unchanged (the rest of the scene stays where it was).

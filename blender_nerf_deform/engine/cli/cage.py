@@ -4,7 +4,7 @@
         [--margin M] [--edge-length L] [--target-tets N] [--threshold T]
         [--region REGION.json] [--no-pin-cut] [--refine-edge L [--refine-box XMIN YMIN ZMIN XMAX YMAX ZMAX]]
 
---refine-edge refines the built cage where a pose will stretch (geometry.cage.refine_cage):
+--refine-edge refines the built cage where a pose will stretch (geometry.cage_refine.refine_cage):
 the tets stay fixed over an animation, so a finer cage is chosen here, once.
 
 Where the mesh was closed along an edit region's cut (its `nerf_cut` vertices, or with
@@ -21,7 +21,8 @@ import numpy as np
 from ..files import check_writable
 from ..errors import EngineError
 from ..geometry.cage import (build_nerf_cage, build_part_cages, check_cage_options, cut_from_region, cut_pins,
-                             part_cut_pins, refine_cage, vertices_outside)
+                             part_cut_pins, vertices_outside)
+from ..geometry.cage_refine import refine_cage
 from ..geometry.mesh_io import read_ply, save_cage
 from ..geometry.region import load_region
 from ..nerf.checkpoint import load_nerf

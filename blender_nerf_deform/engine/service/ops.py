@@ -55,8 +55,8 @@ from ..bend.posed import PosedRenderer
 from ..bend.baked_volume import check_volume_memory, volume_grid
 from ..bend.volume import bake_box
 from ..errors import EngineError
-from ..geometry.cage import (build_cage, build_nerf_cage, build_part_cages, cut_pins, extend_vertex_labels,
-                              part_cut_pins, refine_around)
+from ..geometry.cage import build_cage, build_nerf_cage, build_part_cages, cut_pins, part_cut_pins
+from ..geometry.cage_refine import extend_vertex_labels, refine_around
 from ..geometry.deform import split_regions
 from ..geometry.embedding import Embedding, embed_points, embed_points_by_part
 from ..geometry.extract import density_fn_of, extract_nerf_mesh, extract_nerf_regions, first_dense_point
