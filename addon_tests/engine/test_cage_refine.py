@@ -11,7 +11,7 @@ import pytest
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import inversion_report, signed_volumes
 from blender_nerf_deform.engine.geometry.cage import box_cage
-from blender_nerf_deform.engine.geometry.cage_refine import bisect, median_edge, separate_regions, shared_vertices
+from blender_nerf_deform.engine.geometry.cage_refine import bisect, median_edge, reembed, separate_regions, shared_vertices
 from blender_nerf_deform.engine.geometry.deform import ArapDeformer, regions_to_cage
 from blender_nerf_deform.engine.geometry.embedding import Embedding, embed_points, embed_points_by_part
 from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
@@ -64,7 +64,8 @@ def test_separating_two_handles_keeps_the_surface_and_the_cut_pins(coarse_bar):
     base = np.flatnonzero(V[:, 2] < 0.0)  # the cage's bottom layer, as if pinned at a cut
     assert len(shared_vertices(T, embedding.tet_ids, embedding.weights, handles)) > 0
     s = separate_regions(V, T, embedding.tet_ids, embedding.weights, handles, regions["base"], base)
-    assert s is not None and s.shared_before > 0 and s.shared_after == 0
+    assert s is not None and s.parted == [(0, 1)] and s.too_close == []
+    assert len(shared_vertices(s.tets, s.tet_ids, s.weights, handles, regions["base"], s.cage_pins)) == 0
     assert len(s.tets) < 10 * len(T)  # refined where the regions meet, not everywhere
     assert signed_volumes(s.vertices, s.tets).min() > 0
     refined = Embedding(s.tet_ids, s.tets[s.tet_ids], s.weights, 0)
@@ -89,11 +90,11 @@ def test_points_of_a_multi_part_cage_stay_in_their_own_part():
     points = np.array([[1.0, 0.5, 0.5], [1.0, 0.4, 0.6], [0.9, 0.5, 0.5], [1.1, 0.5, 0.5]])
     point_part = np.array([1, 0, 0, 1])
     e = embed_points_by_part(points, point_part, V, T, part)
-    s = separate_regions(V, T, e.tet_ids, e.weights, [np.array([0, 1]), np.array([2, 3])])  # each spans both parts
-    assert s is not None
-    tet_part = s.bisection.extend_values(part)[s.tets].max(1)
-    assert np.array_equal(tet_part[s.tet_ids], point_part)
-    assert np.abs(Embedding(s.tet_ids, s.tets[s.tet_ids], s.weights, 0).apply(s.vertices) - points).max() < 1e-12
+    b = bisect(V, T, 0.3)
+    tet_ids, weights = reembed(b, T, V, e.tet_ids, e.weights)
+    tet_part = np.rint(b.extend_values(part))[b.tets].max(1)
+    assert np.array_equal(tet_part[tet_ids], point_part)
+    assert np.abs(Embedding(tet_ids, b.tets[tet_ids], weights, 0).apply(b.vertices) - points).max() < 1e-12
 
 
 def test_a_bend_on_a_coarse_cage_follows_the_handles_within_one_percent_once_separated(coarse_bar):
@@ -121,3 +122,19 @@ def test_a_bend_on_a_coarse_cage_follows_the_handles_within_one_percent_once_sep
     assert result.surface_residual < 0.01
     assert np.linalg.norm(surface[regions["base"]] - points[regions["base"]], axis=1).max() < 0.002
     assert median_edge(s.vertices, s.tets) < median_edge(V, T)
+
+
+def test_regions_too_close_to_part_are_named_and_do_not_cost_the_others_their_refinement(coarse_bar):
+    """The tip split into two handles 0.025 apart (closer than any refined tet): that pair is named
+    and left as built, while the middle and either half of the tip are parted."""
+    V, T, points, embedding, regions = coarse_bar
+    z = points[:, 2]
+    lower, upper = np.flatnonzero((z > 0.75) & (z < 0.87)), np.flatnonzero(z > 0.88)
+    handles = [regions["middle"], lower, upper]
+    s = separate_regions(V, T, embedding.tet_ids, embedding.weights, handles)
+    assert s.too_close == [(1, 2)] and s.parted == [(0, 1), (0, 2)]
+    assert len(shared_vertices(s.tets, s.tet_ids, s.weights, handles[:2])) == 0
+    assert len(shared_vertices(s.tets, s.tet_ids, s.weights, [handles[0], handles[2]])) == 0
+    assert len(shared_vertices(s.tets, s.tet_ids, s.weights, handles[1:])) > 0
+    alone = separate_regions(V, T, embedding.tet_ids, embedding.weights, handles[1:])
+    assert alone.bisection is None and alone.tet_ids is None and alone.too_close == [(0, 1)]

@@ -300,27 +300,27 @@ def separate_regions(nerf: bpy.types.Object) -> list[tuple[str, str]]:
                             f"{'shape keys' if cage.data.shape_keys is not None else 'modifiers'} need its vertices as "
                             "built, so handles next to each other may stray from their transform by a few percent")]
     try:
-        separated = separate_cage_regions(rest, tets, tet_ids, weights, regions, pinned, pins)
+        separation = separate_cage_regions(rest, tets, tet_ids, weights, regions, pinned, pins)
     except EngineError as error:  # the cage is kept as it was, and so is the new region
         return [("WARNING", f"{cage.name} is not refined where {nerf.name}'s regions meet: {error}")]
-    if separated.shared_after:
-        # Regions closer than the refined tets: refining would multiply the tets (and every frame's
-        # solve) without letting each region follow its own handle.
-        return [("WARNING", f"{nerf.name}'s regions are too close to part on {cage.name} ({separated.shared_before} cage "
-                            f"vertices move two regions at once): leave a band of unselected vertices about "
-                            f"{2 * separated.edge:.2g} wide (NeRF units) between handles, and between a handle and "
-                            "the pinned region, so that each region follows its own handle (a few percent off now)")]
+    names = [h.name for h in handles] + ["the pinned region"]
+    lines = [("WARNING", f"{names[a]} and {names[b]} are too close to part on {cage.name}: leave a band of unselected "
+                         f"vertices about {2 * separation.edge:.2g} wide (NeRF units) between them, so that each follows "
+                         "its own transform (they stray by a few percent now)")
+             for a, b in separation.too_close]  # refining them would multiply the tets and part nothing
+    if separation.bisection is None:
+        return lines
     groups = {name: w for name, w in vertex_group_weights(cage).items() if name != CUT_PIN_GROUP}
     part = part_labels(cage.data)
-    store_cage(cage.data, separated.vertices, separated.tets)
-    store_embedding(surface.data, separated.tet_ids, separated.weights)
-    store_cut_pins(cage, separated.cage_pins)
+    store_cage(cage.data, separation.vertices, separation.tets)
+    store_embedding(surface.data, separation.tet_ids, separation.weights)
+    store_cut_pins(cage, separation.cage_pins)
     if part is not None and len(part) == len(rest):
-        set_part_labels(cage.data, np.rint(separated.bisection.extend_values(part)).astype(np.int32))
+        set_part_labels(cage.data, np.rint(separation.bisection.extend_values(part)).astype(np.int32))
     for name, w in groups.items():  # an artist's groups, linear along each split edge (new geometry: new groups)
         group = cage.vertex_groups.get(name) or cage.vertex_groups.new(name=name)
-        values = separated.bisection.extend_values(w)
+        values = separation.bisection.extend_values(w)
         for weight in np.unique(values[values > 0]):
             group.add(np.flatnonzero(values == weight).tolist(), float(weight), "REPLACE")
-    return [("INFO", f"{cage.name}: refined where {nerf.name}'s regions meet ({separated.shared_before} cage vertices "
-                     f"shared): {len(tets)} -> {len(separated.tets)} tets")]
+    parted = ", ".join(f"{names[a]} and {names[b]}" for a, b in separation.parted)
+    return [("INFO", f"{cage.name}: refined where {parted} met: {len(tets)} -> {len(separation.tets)} tets")] + lines

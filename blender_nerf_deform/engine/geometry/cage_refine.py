@@ -207,31 +207,48 @@ def leaned_on(tets: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray, points
     return np.unique(corners[np.abs(np.asarray(weights)[points]) > 1e-9])
 
 
+def _region_vertices(tets, tet_ids, weights, handles, pinned_points, cage_pins) -> list[np.ndarray]:
+    """The cage vertices each region leans on: one set per handle, then one for the still ones (the
+    pinned surface vertices and the cage vertices pinned at a cut hold the same transform, so they
+    never conflict with each other), when there are any."""
+    sets = [leaned_on(tets, tet_ids, weights, h) for h in handles]
+    still = np.zeros(0, dtype=np.int64)
+    if pinned_points is not None and len(pinned_points):
+        still = leaned_on(tets, tet_ids, weights, pinned_points)
+    if cage_pins is not None and len(cage_pins):
+        still = np.union1d(still, np.asarray(cage_pins, dtype=np.int64))
+    return sets + [still] if len(still) else sets
+
+
+def _shared_by_pairs(sets: list[np.ndarray]) -> dict[tuple[int, int], np.ndarray]:
+    out = {}
+    for i in range(len(sets)):
+        for j in range(i + 1, len(sets)):
+            common = np.intersect1d(sets[i], sets[j])
+            if len(common):
+                out[(i, j)] = common
+    return out
+
+
 def shared_vertices(tets: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray, handles: list,
                     pinned_points=None, cage_pins=None) -> np.ndarray:
-    """The cage vertices that two regions lean on: two handles' (surface vertex indices), or a
-    handle's and the still ones' (the pinned surface vertices and the cage vertices pinned at a cut,
-    which hold the same transform, so they never conflict with each other)."""
-    still = [leaned_on(tets, tet_ids, weights, pinned_points)] if pinned_points is not None and len(pinned_points) else []
-    if cage_pins is not None and len(cage_pins):
-        still = [np.union1d(still[0] if still else np.zeros(0, np.int64), np.asarray(cage_pins, dtype=np.int64))]
-    sets = [leaned_on(tets, tet_ids, weights, h) for h in handles if len(h)] + still
-    if len(sets) < 2:
-        return np.zeros(0, dtype=np.int64)
-    counts = np.bincount(np.concatenate(sets), minlength=0)
-    return np.flatnonzero(counts >= 2)
+    """The cage vertices (sorted) that two regions lean on: two handles' (surface vertex indices), or
+    a handle's and the still ones' (the pinned surface vertices and the cut's pinned cage vertices)."""
+    pairs = _shared_by_pairs(_region_vertices(tets, tet_ids, weights, handles, pinned_points, cage_pins))
+    return np.unique(np.concatenate(list(pairs.values()))) if pairs else np.zeros(0, dtype=np.int64)
 
 
 @dataclass(frozen=True)
-class SeparatedCage:
-    """A cage refined where regions met, with the surface's embedding and the cut's pins moved onto it."""
+class Separation:
+    """A cage refined where regions met, with the surface's embedding and the cut's pins moved onto
+    it. Pairs name regions by index: 0..len(handles)-1 the handles, len(handles) the still ones."""
 
-    bisection: Bisection
-    tet_ids: np.ndarray  # (P,) each surface vertex's tet in the refined cage
-    weights: np.ndarray  # (P, 4) its barycentric weights there (the same rest position)
-    cage_pins: np.ndarray  # the cut's pins: the old ones and the midpoints of edges between two of them
-    shared_before: int
-    shared_after: int  # > 0: regions closer than the refined tets (the caller may keep the cage as built)
+    bisection: Bisection | None  # None: no pair could be parted, the cage stays as it was
+    tet_ids: np.ndarray | None  # (P,) each surface vertex's tet in the refined cage
+    weights: np.ndarray | None  # (P, 4) its barycentric weights there (the same rest position)
+    cage_pins: np.ndarray | None  # the cut's pins: the old ones and the midpoints of edges between two of them
+    parted: list  # pairs of regions that shared cage vertices and no longer do
+    too_close: list  # pairs closer than the refined tets: left as built (refining would not part them)
     edge: float  # the longest edge left around the shared vertices
 
     @property
@@ -274,26 +291,42 @@ def reembed(bisection: Bisection, old_tets: np.ndarray, old_vertices: np.ndarray
     return new_ids, new_weights
 
 
+def _refined(V, T, tet_ids, weights, max_edge, shared, pad_length, cage_pins):
+    boxes = np.stack([V[shared] - pad_length, V[shared] + pad_length], axis=1)
+    bisection = bisect(V, T, max_edge, boxes)
+    new_ids, new_weights = reembed(bisection, T, V, tet_ids, weights)
+    pinned = np.zeros(len(V))
+    pinned[cage_pins] = 1.0
+    new_pins = np.flatnonzero(bisection.extend_values(pinned) == 1.0)
+    return bisection, new_ids, new_weights, new_pins
+
+
 def separate_regions(vertices: np.ndarray, tets: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray,
                      handles: list, pinned_points=None, cage_pins=None, pad: float = SEPARATION_PAD,
-                     edge: float = SEPARATION_EDGE) -> SeparatedCage | None:
-    """Refine the cage around the cage vertices that two regions lean on (`shared_vertices`), so
-    that each region's surface can follow its own transform: a vertex shared by two handles' tets
-    must serve both, and a fold-free solve then leaves the surface off its targets (issue 30:
-    2-3 % of the region's size on make demo's coarse cages). Tets whose centroid lies within `pad`
-    median edges of a shared vertex are bisected down to `edge` median edges. None when no cage
-    vertex is shared (nothing to do)."""
+                     edge: float = SEPARATION_EDGE) -> Separation | None:
+    """Refine the cage around the cage vertices that two regions lean on, so that each region's
+    surface can follow its own transform: a vertex shared by two handles' tets must serve both, and
+    a fold-free solve then leaves the surface off its targets (issue 30: 2-3 % of the region's size
+    on make demo's coarse cages). Tets whose centroid lies within `pad` median edges of a shared
+    vertex are bisected down to `edge` median edges. Each pair of regions is tried on its own first:
+    a pair closer than the refined tets would stay shared however many tets it got, so it is left
+    as built (`too_close`) and does not cost the others their refinement. None when no cage vertex
+    is shared (nothing to do)."""
     V, T = np.asarray(vertices, dtype=np.float64), np.asarray(tets, dtype=np.int64)
     cage_pins = np.zeros(0, dtype=np.int64) if cage_pins is None else np.asarray(cage_pins, dtype=np.int64)
-    shared = shared_vertices(T, tet_ids, weights, handles, pinned_points, cage_pins)
-    if not len(shared):
+    pairs = _shared_by_pairs(_region_vertices(T, tet_ids, weights, handles, pinned_points, cage_pins))
+    if not pairs:
         return None
     step = median_edge(V, T)
-    boxes = np.stack([V[shared] - pad * step, V[shared] + pad * step], axis=1)
-    bisection = bisect(V, T, edge * step, boxes)
-    new_ids, new_weights = reembed(bisection, T, V, tet_ids, weights)
-    pinned = np.zeros(len(V), dtype=bool)
-    pinned[cage_pins] = True
-    new_pins = np.flatnonzero(bisection.extend_values(pinned.astype(np.float64)) == 1.0)
-    after = shared_vertices(bisection.tets, new_ids, new_weights, handles, pinned_points, new_pins)
-    return SeparatedCage(bisection, new_ids, new_weights, new_pins, len(shared), len(after), edge * step)
+    max_edge, pad_length = edge * step, pad * step
+    parted, too_close = [], []
+    for (i, j), shared in pairs.items():
+        trial = _refined(V, T, tet_ids, weights, max_edge, shared, pad_length, cage_pins)
+        sets = _region_vertices(trial[0].tets, trial[1], trial[2], handles, pinned_points, trial[3])
+        (parted if not len(np.intersect1d(sets[i], sets[j])) else too_close).append((i, j))
+    if not parted:
+        return Separation(None, None, None, None, [], too_close, max_edge)
+    if len(pairs) > 1:  # the parted pairs' refinements together (a lone pair's trial is the result)
+        shared = np.unique(np.concatenate([pairs[pair] for pair in parted]))
+        trial = _refined(V, T, tet_ids, weights, max_edge, shared, pad_length, cage_pins)
+    return Separation(*trial, parted, too_close, max_edge)
