@@ -13,30 +13,16 @@ from blender_nerf_deform.engine.geometry.barycentric import inversion_report, si
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.cage_refine import bisect, median_edge, reembed, separate_regions, shared_vertices
 from blender_nerf_deform.engine.geometry.deform import ArapDeformer, regions_to_cage
-from blender_nerf_deform.engine.geometry.embedding import Embedding, embed_points, embed_points_by_part
+from blender_nerf_deform.engine.geometry.embedding import Embedding, embed_points_by_part
 from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
-
-
-def _turn_x(degrees, centre):
-    a = np.radians(degrees)
-    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
-    A = np.eye(4)
-    A[:3, :3], A[:3, 3] = R, centre - R @ centre
-    return A
+from fixtures import bar_handles
 
 
 @pytest.fixture(scope="module")
 def coarse_bar():
-    """A bar's surface in a coarse box cage (4x4x8 cells, each 0.14 long): the base pinned, the middle
-    and the tip two handles 0.05 apart, so tets of both share cage vertices."""
-    V, T = box_cage((4, 4, 8), lo=(-0.15, -0.15, -0.05), hi=(0.15, 0.15, 1.05))
-    g, zs = np.linspace(-0.1, 0.1, 6), np.linspace(0.0, 1.0, 41)
-    points = np.array([[x, y, z] for z in zs for y in g for x in g
-                       if abs(x) > 0.099 or abs(y) > 0.099 or z in (0.0, 1.0)])
-    z = points[:, 2]
-    regions = {"base": np.flatnonzero(z < 0.12), "middle": np.flatnonzero((z > 0.5) & (z < 0.7)),
-               "tip": np.flatnonzero(z > 0.75)}
-    return V, T, points, embed_points(points, V, T), regions
+    """The bar in a coarse box cage (4x4x8 cells, each 0.14 long): the middle and the tip handles are
+    0.05 apart, so tets of both share cage vertices."""
+    return bar_handles.bar((4, 4, 8))
 
 
 def test_bisection_records_parents_and_keeps_volume_vertices_and_boxes():
@@ -103,7 +89,7 @@ def test_a_bend_on_a_coarse_cage_follows_the_handles_within_one_percent_once_sep
     handles' tets share cage vertices); separated, within 1 % and still flip-free."""
     V, T, points, embedding, regions = coarse_bar
     handles = [regions["middle"], regions["tip"]]
-    pose = [_turn_x(60, points[regions["middle"]].mean(0)), _turn_x(-60, points[regions["tip"]].mean(0))]
+    pose = bar_handles.bend(points, regions, 60)
     middle, tip, base = regions_to_cage(embedding, handles + [regions["base"]], len(V))
     hard = ArapDeformer(V, T, handles=[middle, tip], pins=[base]).solve(pose, max_iter=200)
     assert inversion_report(V, hard.vertices, T).n_inverted > 0  # the old way folds here

@@ -10,38 +10,20 @@ import pytest
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import inversion_report
-from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.deform import ArapDeformer, regions_to_cage
-from blender_nerf_deform.engine.geometry.embedding import embed_points
 from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
-
-
-def _turn_x(degrees, centre):
-    a = np.radians(degrees)
-    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
-    A = np.eye(4)
-    A[:3, :3], A[:3, 3] = R, centre - R @ centre
-    return A
+from fixtures import bar_handles
 
 
 @pytest.fixture(scope="module")
 def bar():
-    """A bar's surface (a grid on its sides and ends) in a box cage of 4x4x16 cells; regions of the
-    surface: the base (pinned), the middle and the tip (two handles), 0.05 apart along the bar."""
-    V, T = box_cage((4, 4, 16), lo=(-0.15, -0.15, -0.05), hi=(0.15, 0.15, 1.05))
-    g, zs = np.linspace(-0.1, 0.1, 6), np.linspace(0.0, 1.0, 41)
-    points = np.array([[x, y, z] for z in zs for y in g for x in g
-                       if abs(x) > 0.099 or abs(y) > 0.099 or z in (0.0, 1.0)])
-    z = points[:, 2]
-    regions = {"base": np.flatnonzero(z < 0.12), "middle": np.flatnonzero((z > 0.5) & (z < 0.7)),
-               "tip": np.flatnonzero(z > 0.75)}
-    return V, T, points, embed_points(points, V, T), regions
+    """A bar's surface in a box cage of 4x4x16 cells; regions of the surface: the base (pinned), the
+    middle and the tip (two handles), 0.05 apart along the bar."""
+    return bar_handles.bar((4, 4, 16))
 
 
-def _bend(points, regions, degrees):
-    """The middle turned one way and the tip the other, each about its own centre: 2 x degrees apart."""
-    return [_turn_x(degrees, points[regions["middle"]].mean(0)), _turn_x(-degrees, points[regions["tip"]].mean(0))]
+_bend = bar_handles.bend
 
 
 def test_a_bend_that_folds_pinned_cage_vertices_stays_flip_free_with_the_surface_on_its_handles(bar):
@@ -97,7 +79,7 @@ def test_the_pose_is_continuous_across_the_angle_where_the_barrier_switches_on(b
 def test_a_rigid_motion_of_every_region_is_followed_exactly(bar):
     V, T, points, embedding, regions = bar
     every = np.arange(len(points))
-    A = _turn_x(35, np.array([0.1, -0.2, 0.3]))
+    A = bar_handles.turn_x(35, np.array([0.1, -0.2, 0.3]))
     A[:3, 3] += [0.2, 0.0, -0.1]
     result = SurfaceArap(V, T, embedding, [every]).solve([A])
     assert np.allclose(result.vertices, V @ A[:3, :3].T + A[:3, 3], atol=1e-9)
@@ -125,7 +107,7 @@ def test_the_fused_local_step_matches_the_jacobi_kernels(bar):
     V, T = bar[0], bar[1]
     elements, vol0 = ElementsEnergy(V, T), signed_volumes(V, T)
     rng = np.random.default_rng(7)
-    turn = _turn_x(170, V.mean(0))
+    turn = bar_handles.turn_x(170, V.mean(0))
     for U in (V @ turn[:3, :3].T + turn[:3, 3], V + 0.05 * rng.standard_normal(V.shape), V * [1.0, 0.0, 0.0],
               V * [1.0, 1.0, 0.0], 0.0 * V, V * [1.0, -1.0, 1.0]):
         U = np.ascontiguousarray(U)
