@@ -229,16 +229,20 @@ def test_a_handle_next_to_another_refines_the_stored_cage_where_they_meet(addon)
                                cage_pins(cage))) == 0
 
 
-@pytest.mark.parametrize("case", ["modifier", "too close"])
+@pytest.mark.parametrize("case", ["modifier", "too close", "bad embedding"])
 def test_a_cage_that_cannot_be_refined_usefully_is_left_as_built(addon, case):
     """A cage deformed by modifiers (Cage Modifiers mode) needs its vertices as built; regions one grid
     step apart (0.25, where the refined tets would still be 0.5 long) cannot be parted by refining,
-    which would only multiply the tets. The handle is made either way; the cage stays as built."""
+    which would only multiply the tets; a stored embedding that names tets the cage does not have
+    (a damaged file) is not read past. The handle is made either way; the cage stays as built."""
     bpy = addon
-    from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
+    from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding, store_embedding
     from blender_nerf_deform.addon.data.properties import handles_of
 
     nerf, surface, verts, cage, V, T, _cut = _grid_nerf_with_box_cage(bpy)
+    if case == "bad embedding":
+        tet_ids, weights = load_embedding(surface.data)
+        store_embedding(surface.data, tet_ids + len(T), weights)
     embedding = load_embedding(surface.data)
     if case == "modifier":
         cage.modifiers.new("Bend", "SIMPLE_DEFORM")

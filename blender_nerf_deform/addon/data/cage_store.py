@@ -293,6 +293,8 @@ def separate_regions(nerf: bpy.types.Object) -> list[tuple[str, str]]:
     rest, tets = load_cage(cage.data)
     tet_ids, weights = load_embedding(surface.data)
     pins = cage_pins(cage)
+    if len(tet_ids) and (tet_ids.min() < 0 or tet_ids.max() >= len(tets)):
+        return [("WARNING", f"{surface.name}'s embedding names tets outside {cage.name}: run Build Cage again")]
     if not len(shared_vertices(tets, tet_ids, weights, regions, pinned, pins)):
         return []
     if cage.data.shape_keys is not None or cage.modifiers:
