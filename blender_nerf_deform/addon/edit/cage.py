@@ -13,8 +13,8 @@ import numpy as np
 from ..data.cage_store import cage_vertex_parts, separate_regions, store_cage, store_cut_pins, store_embedding
 from ..data.mesh_attributes import cut_flags, part_labels, set_part_labels
 from ..data.paths import checkpoint_path
-from ..data.properties import OnNeRF, alive, alive_object, forget_deleted, keep_out_of_renders, owning_nerf
-from ..data.properties import PREVIEW_KEY
+from ..data.properties import (PREVIEW_KEY, OnNeRF, add_app_handlers, alive, alive_object, forget_deleted,
+                               keep_out_of_renders, owning_nerf, remove_app_handlers)
 from ..worker.jobs import WorkerOperator
 from .regions import edit_regions_of, extracted_regions, same_regions
 
@@ -168,12 +168,15 @@ def _cages_into_render_depsgraphs(*_args) -> None:
             keep_out_of_renders(obj)
 
 
+def _handlers():
+    return ((bpy.app.handlers.load_post, _cages_into_render_depsgraphs),)
+
+
 def register():
     _register_classes()
-    bpy.app.handlers.load_post.append(_cages_into_render_depsgraphs)
+    add_app_handlers(_handlers())
 
 
 def unregister():
-    if _cages_into_render_depsgraphs in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.remove(_cages_into_render_depsgraphs)
+    remove_app_handlers(_handlers())
     _unregister_classes()

@@ -19,7 +19,8 @@ from ..data.cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY
 from ..data.images import srgb_to_linear
 from ..data.mesh_attributes import set_cut_flags, set_part_labels
 from ..data.paths import checkpoint_path
-from ..data.properties import OnNeRF, alive, alive_object, forget_deleted, handles_of, owning_nerf, to_nerf_frame
+from ..data.properties import (OnNeRF, add_app_handlers, alive, alive_object, forget_deleted, handles_of, owning_nerf,
+                               remove_app_handlers, to_nerf_frame)
 from ..worker.jobs import WorkerOperator
 from .regions import SURFACE_REGION_KEY, edit_regions_of, encode_regions, regions_of
 
@@ -121,12 +122,15 @@ _classes = (NERFDEFORM_OT_extract_mesh,)
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
 
 
+def _handlers():
+    return ((bpy.app.handlers.load_post, _repair_loaded_meshes),)
+
+
 def register():
     _register_classes()
-    bpy.app.handlers.load_post.append(_repair_loaded_meshes)
+    add_app_handlers(_handlers())
 
 
 def unregister():
-    if _repair_loaded_meshes in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.remove(_repair_loaded_meshes)
+    remove_app_handlers(_handlers())
     _unregister_classes()
