@@ -207,3 +207,31 @@ def test_appearance_codes_learn_each_photo_s_exposure_and_frames_render_with_the
     a = render_image(model.eval(), train.cameras[0])["rgb"]
     b = render_image(again, train.cameras[0])["rgb"]
     assert np.allclose(a, b, atol=1e-6)
+
+
+def test_occupancy_updates_cost_an_unbounded_model_what_they_cost_a_bounded_one(tmp_path):
+    """Two grids, each updated half as often: 16 steps per grid between updates unless asked otherwise."""
+    train = load_dataset(write_room_dataset(tmp_path / "room", n_views=2, size=8))
+    updated = []
+    for scene, every, expected in (("bounded", None, [0, 16, 32]), ("unbounded", None, [0, 32]),
+                                   ("unbounded", 8, [0, 8, 16, 24, 32, 40])):
+        cfg = config_for(train, scene)
+        for k, v in SMALL.items():
+            setattr(cfg, k, v)
+        torch.manual_seed(0)
+        trainer = Trainer(NerfModel(cfg), train, TrainOptions(steps=48, target_samples=1 << 8, occ_warmup_steps=0,
+                                                                occ_update_every=every))
+        steps = []
+
+        def recorded(grid):  # the real update, and the step it ran at
+            def update(*args, **kwargs):
+                steps.append(trainer.step_count)
+                return type(grid).update(grid, *args, **kwargs)
+            return update
+
+        for grid in trainer.grids:
+            grid.update = recorded(grid)
+        trainer.train(progress=False)
+        updated.append((scene, every, sorted(set(steps)), expected))
+        assert len(steps) == len(trainer.grids) * len(expected)
+    assert all(got == expected for *_, got, expected in updated), updated

@@ -30,7 +30,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
-from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel  # noqa: E402
+from blender_nerf_deform.engine.nerf.model import NerfModel  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for  # noqa: E402
 
@@ -76,6 +76,8 @@ def main() -> int:
                     help="also keep views 5, 15, 25, ... out, evaluated only once at the end (never tune on them)")
     ap.add_argument("--appearance-dim", type=int, default=0, help="per-image appearance code size (0: none)")
     ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
+    ap.add_argument("--occ-every", type=int, default=None, help="update the occupancy grids every this many steps (default: 16 per grid)")
+    ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -98,6 +100,8 @@ def main() -> int:
         cfg.occ_resolution = args.occ_res
     if args.occ_threshold is not None:
         cfg.occ_threshold = args.occ_threshold
+    if args.near_plane is not None:
+        cfg.near_plane = args.near_plane
     opts = TrainOptions(max_seconds=args.seconds)
     if args.target_samples:
         opts.target_samples = args.target_samples
@@ -105,6 +109,8 @@ def main() -> int:
         opts.lr_final_factor = args.lr_final
     if args.distortion is not None:
         opts.distortion_weight = args.distortion
+    if args.occ_every:
+        opts.occ_update_every = args.occ_every
     torch.manual_seed(0)
     model = NerfModel(cfg).to(args.device)
     trainer = Trainer(model, train, opts)
