@@ -61,7 +61,8 @@ class TrainOptions:
     max_rays: int = 1 << 14
     # Steps between occupancy updates; None: 16 per grid, so an unbounded model (an inner and a background
     # grid) updates every 32 steps and spends what a bounded one does: on fern 10 min, 6,250 steps instead
-    # of 5,888 and +0.17 dB validation PSNR against both grids every 16 (BENCHMARKS.md, issue 28).
+    # of 5,888 and +0.17 dB validation PSNR against both grids every 16; every 64 is worse, the grid goes
+    # stale (BENCHMARKS.md, issue 28).
     occ_update_every: int | None = None
     occ_warmup_steps: int = 128  # every cell is re-evaluated during these steps
     occ_fraction: float = 1 / 16  # afterwards: this fraction uniformly + as many among occupied cells
