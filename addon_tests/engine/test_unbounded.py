@@ -51,6 +51,9 @@ def test_background_grid_round_trips_cells_and_never_holds_the_inner_box():
     back, inside = grid.cell_index(centres)
     shell = grid._shell
     assert inside[shell].all() and torch.equal(back[shell], idx[shell])
+    # The shell is exactly the cells whose centre lies outside the inner box: all but the middle 16^3.
+    outside = ~((centres >= grid.inner[0]) & (centres <= grid.inner[1])).all(dim=-1)
+    assert torch.equal(shell, outside) and int(shell.sum()) == 32**3 - 16**3
     grid.update(lambda p: torch.full((p.shape[0],), 100.0), 0.01)  # dense everywhere
     assert grid.mask.sum() == shell.sum() and not grid.occupied(torch.zeros(1, 3)).any()
     assert grid.occupied(torch.tensor([[0.0, 0.5, 30.0]])).all()

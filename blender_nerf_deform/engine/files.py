@@ -107,7 +107,9 @@ def write_png_rgba(path, rgba: np.ndarray) -> None:
     from PIL import Image
 
     arr = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    atomic_write(path, lambda f: Image.fromarray(arr, mode="RGBA").save(f, format="PNG"))
+    # zlib level 1: Pillow's default (6) spent 0.07 s of a one-frame `render` (270x480 fox); Blender too
+    # saves PNGs lightly compressed by default (compression 15 of 100).
+    atomic_write(path, lambda f: Image.fromarray(arr, mode="RGBA").save(f, format="PNG", compress_level=1))
 
 
 def _probe_folder(folder: Path, what) -> None:

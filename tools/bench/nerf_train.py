@@ -62,8 +62,10 @@ def main() -> int:
     ap.add_argument("--save", help="write the final checkpoint here")
     ap.add_argument("--log2-table", type=int, default=None)
     ap.add_argument("--finest", type=int, default=None)
+    ap.add_argument("--color-layers", type=int, default=None, help="hidden layers of the colour MLP (default: NerfConfig's)")
     ap.add_argument("--occ-res", type=int, default=None)
     ap.add_argument("--target-samples", type=int, default=None)
+    ap.add_argument("--lr", type=float, default=None, help="peak learning rate (default: TrainOptions.lr)")
     ap.add_argument("--lr-final", type=float, default=None)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
@@ -96,6 +98,8 @@ def main() -> int:
         cfg.log2_table_size = args.log2_table
     if args.finest:
         cfg.finest_resolution = args.finest
+    if args.color_layers:
+        cfg.color_layers = args.color_layers
     if args.occ_res:
         cfg.occ_resolution = args.occ_res
     if args.occ_threshold is not None:
@@ -105,6 +109,8 @@ def main() -> int:
     opts = TrainOptions(max_seconds=args.seconds)
     if args.target_samples:
         opts.target_samples = args.target_samples
+    if args.lr:
+        opts.lr = args.lr
     if args.lr_final:
         opts.lr_final_factor = args.lr_final
     if args.distortion is not None:
