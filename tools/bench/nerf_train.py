@@ -29,6 +29,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from blender_nerf_deform.engine.nerf import renderer  # noqa: E402
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
 from blender_nerf_deform.engine.nerf.model import NerfModel  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
@@ -79,10 +80,14 @@ def main() -> int:
     ap.add_argument("--appearance-dim", type=int, default=0, help="per-image appearance code size (0: none)")
     ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
     ap.add_argument("--occ-every", type=int, default=None, help="update the occupancy grids every this many steps (default: 16 per grid)")
+    ap.add_argument("--train-round", type=int, default=None,
+                    help="samples marched per training round (default: renderer.TRAIN_SAMPLES_PER_ROUND)")
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.train_round:
+        renderer.TRAIN_SAMPLES_PER_ROUND = args.train_round
 
     ds = load_dataset(args.data, downscale=args.downscale)
     val_idx = list(range(0, len(ds), 10))
