@@ -103,7 +103,7 @@ def main() -> int:
         cfg.log2_table_size = args.log2_table
     if args.finest:
         cfg.finest_resolution = args.finest
-    if args.color_layers:
+    if args.color_layers is not None:  # 0 is a valid colour head (no hidden layer)
         cfg.color_layers = args.color_layers
     if args.occ_res:
         cfg.occ_resolution = args.occ_res
