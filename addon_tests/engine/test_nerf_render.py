@@ -110,6 +110,24 @@ def test_training_mode_rendering_is_differentiable_and_agrees_with_inference():
     assert torch.allclose(out["rgb"].detach(), inf["rgb"], atol=2e-3)
 
 
+def test_substeps_march_a_finer_step_that_converges():
+    """`substeps` S marches the frame at the render step / S (a bent frame's own step too), and finer
+    marches converge: 4 substeps are closer to 8 than one is. Bad values get one clear error."""
+    m = _model()
+    cam = _camera()
+    frames = {s: render_image(m, cam, substeps=s) for s in (1, 2, 4, 8)}
+    half = render_image(m, cam, step=m.config.render_step / 2)
+    assert np.array_equal(frames[2]["rgba"], half["rgba"]) and np.array_equal(frames[2]["depth"], half["depth"])
+    assert frames[2]["density_samples_per_ray"] > 1.8 * frames[1]["density_samples_per_ray"]
+    quarter = render_image(m, cam, step=m.config.render_step / 2, substeps=2)  # a given step is divided too
+    assert np.array_equal(quarter["rgba"], frames[4]["rgba"])
+    error = {s: np.abs(frames[s]["rgba"] - frames[8]["rgba"]).mean() for s in (1, 4)}
+    assert error[4] < 0.5 * error[1], error
+    for bad in (0, 17, 1.5, True, "2"):
+        with pytest.raises(EngineError, match="substeps"):
+            render_image(m, cam, substeps=bad)
+
+
 def test_checkpoint_round_trip_renders_identical_pixels(tmp_path):
     m = _model(seed=3)
     path = tmp_path / "nerf.ckpt"

@@ -14,6 +14,8 @@ from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
 from blender_nerf_deform.engine.nerf.dataset import load_dataset
 from blender_nerf_deform.engine.nerf.evaluate import evaluate, psnr
 from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine.nerf.renderer import render_image
+from blender_nerf_deform.engine.nerf.substeps import FINAL_SUBSTEPS
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
 
 from fixtures import REPO
@@ -126,6 +128,20 @@ def test_cli_train_resume_eval_render(sphere, tmp_path):
         assert im.mode == "RGBA" and im.size == (32, 32)
         a = np.asarray(im)[..., 3]
     assert a.max() > 100 and a.min() < 30  # the ball (60 steps: not yet opaque), and empty space around it
+    # Final frames march FINAL_SUBSTEPS samples per step; --substeps 1 is a preview's march.
+    one = tmp_path / "one"
+    _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", one, "--substeps", "1")
+    camera = load_dataset(test_dir).cameras[0]
+    for folder, substeps in ((out, FINAL_SUBSTEPS), (one, 1)):
+        with Image.open(folder / "r_0.png") as im:
+            written = np.asarray(im).astype(int)
+        want = np.round(render_image(second, camera, substeps=substeps)["rgba"] * 255).astype(int)
+        assert np.abs(written - want).max() <= 1, substeps
+    with Image.open(one / "r_0.png") as im_one, Image.open(out / "r_0.png") as im_final:
+        assert not np.array_equal(np.asarray(im_one), np.asarray(im_final))
+    proc = _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", one, "--substeps", "0",
+                check=False)
+    assert proc.returncode == 2 and "--substeps" in proc.stderr
 
     half = tmp_path / "half"
     _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", half, "--downscale", "2")
@@ -174,6 +190,39 @@ def test_an_occupancy_update_keeps_the_largest_of_a_cells_repeated_samples():
     assert torch.allclose(grid.density, expected, rtol=0, atol=1e-6)
 
 
+def test_error_map_draws_rays_where_the_error_is_and_follows_the_loss(tmp_path):
+    """instant-ngp's error map: the share of rays it draws lands in tiles in proportion to their recorded
+    error, inside the image where the last tiles are cut by its edge, and each tile's error follows the
+    squared errors recorded for its pixels."""
+    from blender_nerf_deform.engine.nerf.trainer import ERROR_TILE
+
+    size = ERROR_TILE * 2 + 3  # the last row and column of tiles are 3 pixels wide
+    ds = load_dataset(write_sphere_dataset(tmp_path / "s", n_views=2, size=size))
+    trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds,
+                      TrainOptions(steps=1, error_rays=1.0))
+    assert trainer.tile_error.shape == (2 * 3 * 3,) and bool((trainer.tile_error == 1).all())  # unvisited: high
+    last = 2 * 3 * 3 - 1  # image 1's corner tile
+    trainer.tile_error.fill_(1e-8)
+    trainer.tile_error[last] = 1.0
+    idx = trainer.draw_pixels(4000)
+    img, y, x = idx // (size * size), (idx % (size * size)) // size, idx % size
+    assert bool((img == 1).all()) and bool(((y >= 2 * ERROR_TILE) & (y < size)).all())
+    assert bool(((x >= 2 * ERROR_TILE) & (x < size)).all())
+    assert len(set(zip(y.tolist(), x.tolist()))) == 9  # every pixel of the 3x3 corner, none beyond it
+    # Half the fraction: the other half is drawn uniformly over both images.
+    trainer.opt.error_rays = 0.5
+    img = trainer.draw_pixels(4000) // (size * size)
+    assert 800 < int((img == 0).sum()) < 1200
+
+    first = torch.tensor([0, 1, size])  # three pixels of image 0's first tile
+    trainer.record_errors(first, torch.tensor([0.1, 0.2, 0.3]))
+    assert trainer.tile_error[0].item() == pytest.approx(0.5 * 1e-8 + 0.5 * 0.2)
+    assert trainer.tile_error[1].item() == pytest.approx(1e-8)  # untouched tiles keep theirs
+    trainer.record_errors(torch.tensor([0]), torch.tensor([0.0]))
+    assert trainer.tile_error[0].item() == pytest.approx(0.5 * (0.5 * 1e-8 + 0.5 * 0.2))
+    assert torch.all(trainer.tile_error > 0)  # multinomial needs a positive total
+
+
 def test_masked_out_pixels_are_never_drawn_for_training(tmp_path):
     """nerfstudio's mask_path: a pixel whose mask is 0 does not count in the loss, so the trainer never samples it."""
     folder = write_sphere_dataset(tmp_path / "s", n_views=2, size=8)
@@ -183,7 +232,9 @@ def test_masked_out_pixels_are_never_drawn_for_training(tmp_path):
     ds.images[~masks] = [1.0, 0.0, 0.0, 1.0]  # what must never be seen: pure red
     ds.images[masks] = [0.0, 1.0, 0.0, 1.0]
     ds.masks = masks
-    trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(steps=1))
+    # With the error map asked for too: a masked dataset is drawn uniformly among its valid pixels.
+    trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds,
+                      TrainOptions(steps=1, error_rays=0.5))
     _, _, target, _ = trainer.sample_rays(4000)
     assert torch.equal(target, torch.tensor([0.0, 1.0, 0.0, 1.0]).expand(4000, 4))
     ds.masks = np.zeros_like(masks)

@@ -82,6 +82,8 @@ def main() -> int:
     ap.add_argument("--occ-every", type=int, default=None, help="update the occupancy grids every this many steps (default: 16 per grid)")
     ap.add_argument("--train-round", type=int, default=None,
                     help="samples marched per training round (default: renderer.TRAIN_SAMPLES_PER_ROUND)")
+    ap.add_argument("--error-rays", type=float, default=None,
+                    help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)")
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
     args = ap.parse_args()
     if args.threads:
@@ -122,6 +124,8 @@ def main() -> int:
         opts.distortion_weight = args.distortion
     if args.occ_every:
         opts.occ_update_every = args.occ_every
+    if args.error_rays is not None:
+        opts.error_rays = args.error_rays
     torch.manual_seed(0)
     model = NerfModel(cfg).to(args.device)
     trainer = Trainer(model, train, opts)

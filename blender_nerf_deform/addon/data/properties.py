@@ -25,6 +25,8 @@ import bpy
 from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
 
+from ...engine.nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
+
 
 class CageDataError(ValueError):
     """Stored cage or embedding data is missing or no longer matches its mesh (data/cage_store.py reads it)."""
@@ -86,6 +88,10 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
     )
     aabb: FloatVectorProperty(name="Bounds", size=6, description="NeRF's scene box in its own frame: min x y z, max x y z")
     deformation_mode: EnumProperty(name="Deformation", items=DEFORMATION_MODES, default="ARAP")
+    render_substeps: IntProperty(
+        name="Render Substeps", default=FINAL_SUBSTEPS, min=1, max=MAX_SUBSTEPS,
+        description="Samples per step of this NeRF's march in renders (F12, Render Animation, blender -b): more "
+                    "is sharper and slower; the viewport and the preview render take 1")
     surface: PointerProperty(name="Surface", type=bpy.types.Object, description="Extracted mesh of this NeRF")
     cage: PointerProperty(name="Cage", type=bpy.types.Object, description="Tetrahedral cage of this NeRF")
     threshold: FloatProperty(name="Density Threshold", default=10.0, min=0.0, description="Density at the extracted surface")

@@ -157,6 +157,7 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
                 frame.cancelled = True
                 return frame
             request = camera_request(nerf_pose(depsgraph, nerf), pinhole)
+            request.params["substeps"] = nerf.nerf_deform.render_substeps
             if on_status:
                 count = f" ({k + 1} of {len(nerfs)})" if len(nerfs) > 1 else ""
                 on_status(f"NeRF Deform: rendering {nerf.name}{count}, frame {scene.frame_current}")

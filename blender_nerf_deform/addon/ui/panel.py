@@ -48,6 +48,7 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
         box.operator("nerf_deform.extract_mesh", icon="MESH_DATA")
         box.operator("nerf_deform.build_cage", icon="MESH_ICOSPHERE")
         layout.prop(s, "deformation_mode")
+        layout.prop(s, "render_substeps")
 
         row = layout.row(align=True)
         row.operator("nerf_deform.preview_render", icon="RENDER_STILL")

@@ -34,11 +34,12 @@ class PosedRenderer:
             self._pose = pose.copy()
         return self.bend
 
-    def render(self, camera, deformed_vertices=None, progress=None) -> dict:
-        """`render_image`'s result, plus `inversion` (the pose's InversionReport, or None at rest)."""
+    def render(self, camera, deformed_vertices=None, progress=None, substeps: int = 1) -> dict:
+        """`render_image`'s result (`substeps` samples per step of the march), plus `inversion` (the pose's
+        InversionReport, or None at rest)."""
         bend = self.pose(deformed_vertices)
         extra = bend.render_kwargs() if bend is not None else {}
-        out = render_image(self.model, camera, progress=progress, **extra)
+        out = render_image(self.model, camera, progress=progress, substeps=substeps, **extra)
         out["inversion"] = bend.inversion if bend is not None else None
         return out
 

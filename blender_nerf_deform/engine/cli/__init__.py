@@ -30,6 +30,14 @@ def _command(module: str):
     return handler
 
 
+def _substeps_argument(p: argparse.ArgumentParser) -> None:
+    from ..nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
+
+    p.add_argument("--substeps", type=int, default=FINAL_SUBSTEPS, choices=range(1, MAX_SUBSTEPS + 1), metavar="S",
+                   help=f"samples per step of the NeRF's march (1 to {MAX_SUBSTEPS}): more is finer and slower; "
+                        f"default {FINAL_SUBSTEPS}, the quality of final frames; 1 the speed of previews")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
@@ -64,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nerf", required=True, metavar="CKPT", help="checkpoint written by `train`")
     p.add_argument("--data", required=True, metavar="PATH", help=DATA_HELP)
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="box-filter the images by an integer factor K")
+    _substeps_argument(p)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_command("eval"))
 
@@ -75,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--deformed", metavar="V.npy|DIR", help="(N,3) deformed positions of the cage's vertices, same order; "
                    "or a folder of such .npy poses, one per frame of --cameras, matched in natural name order")
     p.add_argument("--downscale", type=int, default=1, metavar="K", help="render at 1/K of the cameras' resolution")
+    _substeps_argument(p)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if available, else cpu")
     p.set_defaults(handler=_command("render"))
 

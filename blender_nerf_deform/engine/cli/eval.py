@@ -1,6 +1,6 @@
 """`eval`: PSNR of a checkpoint over a dataset's frames (composited on white).
 
-    python -m blender_nerf_deform.engine eval --nerf CKPT --data DIR [--downscale K] [--device D]
+    python -m blender_nerf_deform.engine eval --nerf CKPT --data DIR [--downscale K] [--substeps S] [--device D]
 
 Prints one line per frame and a last line `PSNR <mean> dB over <n> frames`.
 """
@@ -21,7 +21,7 @@ def main(args) -> int:
     from tqdm import tqdm
 
     with tqdm(total=len(ds), unit="frame", dynamic_ncols=True) as bar:
-        values = evaluate(model, ds, progress=lambda done, total: bar.update(1))
+        values = evaluate(model, ds, progress=lambda done, total: bar.update(1), substeps=args.substeps)
     for name, v in zip(ds.names, values):
         print(f"{name}\t{v:.3f}")
     print(f"PSNR {sum(values) / len(values):.3f} dB over {len(values)} frames")

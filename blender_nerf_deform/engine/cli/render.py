@@ -50,7 +50,7 @@ def main(args) -> int:
     try:
         bar = tqdm(cams.cameras, unit="frame", dynamic_ncols=True)
         for k, cam in enumerate(bar):
-            result = renderer.render(cam, poses[k] if poses is not None else None)
+            result = renderer.render(cam, poses[k] if poses is not None else None, substeps=args.substeps)
             if result["inversion"] is not None:
                 bar.write(f"frame {cam.name}: {result['inversion'].summary()}")
             write_png_rgba(out / f"{cam.name}.png", result["rgba"])

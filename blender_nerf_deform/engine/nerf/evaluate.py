@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .renderer import render_image
+from .substeps import FINAL_SUBSTEPS
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -12,12 +13,13 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
 
 
-def evaluate(model, dataset, background=(1.0, 1.0, 1.0), progress=None) -> list[float]:
-    """PSNR of each frame of `dataset` rendered by `model`, both composited on `background`."""
+def evaluate(model, dataset, background=(1.0, 1.0, 1.0), progress=None, substeps: int = FINAL_SUBSTEPS) -> list[float]:
+    """PSNR of each frame of `dataset` rendered by `model` as `render` renders it (`substeps` samples per
+    step of the march), both composited on `background`."""
     bg = np.asarray(background, np.float32)
     values = []
     for n, (cam, img) in enumerate(zip(dataset.cameras, dataset.images)):
-        out = render_image(model, cam, background=bg)
+        out = render_image(model, cam, background=bg, substeps=substeps)
         gt = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:]) * bg
         values.append(psnr(out["rgb"], gt))
         if progress is not None:

@@ -57,6 +57,7 @@ from .camera import Camera  # noqa: F401  (re-exported: renderer.Camera is part 
 from .contraction import FAR_RADIUS
 from .lens import camera_directions
 from .occupancy import OccupancyGrid
+from .substeps import check_substeps
 
 
 SampleTransform = Callable[[torch.Tensor, torch.Tensor], tuple]
@@ -535,15 +536,20 @@ def check_frame_memory(width: int, height: int) -> None:
 
 
 @torch.no_grad()
-def render_image(model, camera: Camera, background=None, chunk: int | None = None, **kwargs) -> dict:
+def render_image(model, camera: Camera, background=None, chunk: int | None = None, substeps: int = 1,
+                 **kwargs) -> dict:
     """Render one frame. Returns numpy arrays: `rgba` (H,W,4) float straight alpha, `rgb` (H,W,3)
     composited on `background`, `depth` (H,W), and floats `density_samples_per_ray`,
     `color_samples_per_ray`. kwargs go to `render_rays` (occupancy, sample_transform, progress, ...).
     `chunk`: rays per chunk (default FRAME_CHUNK; 4096 on the legacy path). On the fast path the rays
     are made chunk by chunk, in tile order (the memory of a frame is its outputs and one chunk's work).
+    `substeps`: samples per step of the march (the `step` given, else the NeRF's render step): final
+    frames take `substeps.FINAL_SUBSTEPS`, previews 1.
     """
     h, w = camera.height, camera.width
     check_frame_memory(w, h)
+    if check_substeps(substeps) > 1:
+        kwargs["step"] = float(kwargs.get("step") or model.config.render_step) / substeps
     if _render_path == "legacy":
         o, d = camera_rays(camera, device=model.device)
         out = render_rays(model, o, d, background=background, chunk=chunk or 4096, **kwargs)

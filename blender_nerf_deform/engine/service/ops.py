@@ -33,7 +33,8 @@ modification time; cages, embeddings and regions live in the worker session
     solve    shared cage/embedding/regions, mode, transforms, answer
                                           a pose: deformed cage vertices, or (answer
                                           "surface") the deformed surface for the preview
-    render   checkpoint, camera, pose     one frame, solved and rendered in one go:
+    render   checkpoint, camera, pose [substeps]
+                                          one frame, solved and rendered in one go:
              pose {"kind": "rest"} | {"kind": "cage"} + deformed_vertices (shared cage)
                   | {"kind": "handles", mode, transforms, handle_names} (shared cage,
                   embedding, regions)
@@ -66,6 +67,7 @@ from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
 from ..nerf.checkpoint import load_nerf
 from ..nerf.model import device_summary
+from ..nerf.substeps import check_substeps
 from .registry import Cancelled, Job, op
 from .session import SESSION
 
@@ -458,14 +460,17 @@ def _inversion_stats(stats: dict, inversion) -> None:
 def render(job: Job) -> tuple[dict, dict]:
     """One frame from a pinhole camera in the NeRF's frame, at the pose given, solved here.
 
-    Returns arrays `rgba` (H,W,4) float32 straight alpha, rows top-down, and `depth`
-    (H,W) float32: expected distance along each unit ray, NeRF units, 0 where empty.
+    params: checkpoint, camera, pose, substeps (samples per step of the march: 1, a preview's, when absent;
+    final frames send `substeps.FINAL_SUBSTEPS`). Returns arrays `rgba` (H,W,4) float32 straight alpha, rows
+    top-down, and `depth` (H,W) float32: expected distance along each unit ray, NeRF units, 0 where empty.
     """
     params = job.params
+    substeps = check_substeps(params.get("substeps", 1))
     model = _model(params)
     camera = _camera(params["camera"])
     renderer, deformed, stats = _posed(job, model, params.get("pose"))
-    out = renderer.render(camera, deformed, progress=lambda done, total: job.progress(done / total, "rendering"))
+    out = renderer.render(camera, deformed, progress=lambda done, total: job.progress(done / total, "rendering"),
+                          substeps=substeps)
     stats.update({k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
     _inversion_stats(stats, out["inversion"])
     return stats, {"rgba": out["rgba"].astype(np.float32, copy=False), "depth": out["depth"].astype(np.float32, copy=False)}
