@@ -4,7 +4,9 @@
 Validation split: every 10th view (lego's 90: indices 0, 10, ..., 80) is held
 out; the others train. With --final, the views 5, 15, 25, ... are kept out as well, from
 training and from the validation marks: they are rendered once, at the end, the figure on
-photos nothing was tuned on (tune on the validation marks, report the final split). PSNR is on white (photos without alpha: on the photo itself),
+photos nothing was tuned on (tune on the validation marks, report the final split), marched at the
+training step (`final`, comparable with earlier figures) and as `render` and F12 march final frames
+(`final_substeps`: substeps.FINAL_SUBSTEPS samples per step). PSNR is on white (photos without alpha: on the photo itself),
 over all held-out views, measured at the
 given training times (the time spent validating is not counted). Also reports the
 render time of one 200x200 validation frame, samples per ray and peak memory (RSS).
@@ -33,6 +35,7 @@ from blender_nerf_deform.engine.nerf import renderer  # noqa: E402
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
 from blender_nerf_deform.engine.nerf.model import NerfModel  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
+from blender_nerf_deform.engine.nerf.substeps import FINAL_SUBSTEPS  # noqa: E402
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for  # noqa: E402
 
 
@@ -40,11 +43,11 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def evaluate(model, ds) -> dict:
+def evaluate(model, ds, substeps: int = 1) -> dict:
     psnrs, times, spr, cspr = [], [], [], []
     for cam, img in zip(ds.cameras, ds.images):
         t = time.perf_counter()
-        out = render_image(model, cam, background=(1.0, 1.0, 1.0))
+        out = render_image(model, cam, background=(1.0, 1.0, 1.0), substeps=substeps)
         times.append(time.perf_counter() - t)
         gt = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
         psnrs.append(-10.0 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
@@ -150,14 +153,18 @@ def main() -> int:
     wall = time.perf_counter() - t0
     if marks:  # budget ended between marks: validate the final model at the end
         callback(trainer)
-    final = None
+    final = final_substeps = None
     if final_idx:
         final = evaluate(trainer.model, ds.subset(final_idx))
         final.update({"views": final_idx})
         print(json.dumps({"final": final}), flush=True)
+        final_substeps = evaluate(trainer.model, ds.subset(final_idx), substeps=FINAL_SUBSTEPS)
+        final_substeps.update({"views": final_idx, "substeps": FINAL_SUBSTEPS})
+        print(json.dumps({"final_substeps": final_substeps}), flush=True)
     summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],
                "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
-               "results": results, "final": final, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
+               "results": results, "final": final,
+               "final_substeps": final_substeps, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
                "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
                "threads": torch.get_num_threads(), "torch": torch.__version__,
                "device": str(model.device) + (f" ({torch.cuda.get_device_name()})" if model.device.type == "cuda" else "")}

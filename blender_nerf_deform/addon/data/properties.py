@@ -90,8 +90,8 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
     deformation_mode: EnumProperty(name="Deformation", items=DEFORMATION_MODES, default="ARAP")
     render_substeps: IntProperty(
         name="Render Substeps", default=FINAL_SUBSTEPS, min=1, max=MAX_SUBSTEPS,
-        description="Samples per step of this NeRF's march in renders (F12, Render Animation, blender -b): more "
-                    "is sharper and slower; the viewport and the preview render take 1")
+        description="Samples per step of this NeRF's march in renders (F12, Render Animation, blender -b, and "
+                    "the last image of the viewport and the preview render): more is sharper and slower")
     surface: PointerProperty(name="Surface", type=bpy.types.Object, description="Extracted mesh of this NeRF")
     cage: PointerProperty(name="Cage", type=bpy.types.Object, description="Tetrahedral cage of this NeRF")
     threshold: FloatProperty(name="Density Threshold", default=10.0, min=0.0, description="Density at the extracted surface")

@@ -67,7 +67,8 @@ def nerf_pose(depsgraph, nerf) -> NerfPose:
     # cage's placement all use it.
     to_nerf = to_nerf_frame(nerf, nerf.evaluated_get(depsgraph).matrix_world)
     pose, arrays, shared = frame_pose(nerf, depsgraph, to_nerf)
-    return NerfPose(nerf.name, np.array(to_nerf, dtype=np.float64), {"checkpoint": checkpoint_path(nerf), "pose": pose}, arrays, shared)
+    params = {"checkpoint": checkpoint_path(nerf), "pose": pose, "substeps": nerf.nerf_deform.render_substeps}
+    return NerfPose(nerf.name, np.array(to_nerf, dtype=np.float64), params, arrays, shared)
 
 
 @dataclass
@@ -78,8 +79,9 @@ class FrameRequest:
     depth_factor: np.ndarray  # per pixel: engine depth (NeRF units along unit rays) → Blender's planar depth
 
 
-def camera_request(posed: NerfPose, pinhole: Pinhole) -> FrameRequest:
-    """The worker request that renders `posed` through `pinhole` (a camera in world coordinates)."""
+def camera_request(posed: NerfPose, pinhole: Pinhole, substeps: int | None = None) -> FrameRequest:
+    """The worker request that renders `posed` through `pinhole` (a camera in world coordinates), at the
+    NeRF's Render Substeps or at `substeps` when given (a progressive render's coarse images)."""
     c2w = posed.to_nerf @ np.array(pinhole.camera_to_world, dtype=np.float64)
     # Camera-space ray of each pixel has z = -1: its planar depth is 1 per unit of that vector.
     i = np.arange(pinhole.width) + 0.5
@@ -88,6 +90,8 @@ def camera_request(posed: NerfPose, pinhole: Pinhole) -> FrameRequest:
     d_cam = np.stack([(ii - pinhole.cx) / pinhole.fx, -(jj - pinhole.cy) / pinhole.fy, -np.ones_like(ii)], -1)
     length_in_nerf = np.linalg.norm(d_cam @ c2w[:3, :3].T, axis=-1)
     params = {**posed.params, "camera": {**pinhole.as_dict(), "camera_to_world": c2w.tolist()}}
+    if substeps is not None:
+        params["substeps"] = substeps
     return FrameRequest(params, posed.arrays, posed.shared, 1.0 / length_in_nerf)
 
 
@@ -157,7 +161,6 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
                 frame.cancelled = True
                 return frame
             request = camera_request(nerf_pose(depsgraph, nerf), pinhole)
-            request.params["substeps"] = nerf.nerf_deform.render_substeps
             if on_status:
                 count = f" ({k + 1} of {len(nerfs)})" if len(nerfs) > 1 else ""
                 on_status(f"NeRF Deform: rendering {nerf.name}{count}, frame {scene.frame_current}")

@@ -14,7 +14,8 @@ itself only draws the image). A `ViewportRender` belongs to one 3D View:
 When either differs from what the current render shows, a new
 `ProgressiveRender` starts: 1/8 of the view's resolution first (an image
 within a fraction of a second while the artist drags a handle or orbits),
-then 1/4, 1/2 and full while nothing changes. A render that was refining is
+then 1/4, 1/2 and full while nothing changes (the coarse images at one sample per
+step of the march, the full one at the NeRF's Render Substeps: F12's frame). A render that was refining is
 cancelled in the worker; one whose coarse step is in flight lands first
 (ViewportRender says why). Answers of a replaced render are dropped, so a
 stale image never replaces a newer one. The worker's answers reach Blender's
@@ -113,7 +114,8 @@ class ProgressiveRender:
         self._layers = {}
         try:
             for index, posed in enumerate(self.poses):
-                request = camera_request(posed, pinhole)
+                # Coarse images march one sample per step (speed); the last, full-size one is F12's.
+                request = camera_request(posed, pinhole, substeps=None if step + 1 == len(self.downscales) else 1)
                 request_id = self.client.submit(
                     "render", request.params, request.arrays, shared=request.shared,
                     on_done=lambda _result, out, step=step, index=index, factor=request.depth_factor:

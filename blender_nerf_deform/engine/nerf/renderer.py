@@ -44,7 +44,6 @@ Depth is the expected distance along the (unit) ray direction, divided by alpha;
 from __future__ import annotations
 
 import contextlib
-import math
 from typing import Callable
 
 import numpy as np
