@@ -1,0 +1,62 @@
+#!/usr/bin/env python3
+"""Benchmark: PSNR and frame time of a checkpoint against the samples per render step (`substeps`).
+
+The splits are those of tools/bench/nerf_train.py: views 0, 10, 20, ... validate, views 5, 15, 25, ...
+are the held-out photos of a `--final` run (never trained on, never tuned on). Each view is rendered
+at every substeps value in one process (the first render warms up), PSNR on white.
+
+    flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench/render_substeps.py --nerf FERN.ckpt \\
+        --data ../shared/datasets/fern --downscale 8 --substeps 1 2 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
+from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
+from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--nerf", required=True, help="a checkpoint of a `nerf_train.py --final --save` run")
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--downscale", type=int, default=1)
+    ap.add_argument("--substeps", type=int, nargs="+", default=[1, 2, 3])
+    args = ap.parse_args()
+
+    model = load_nerf(args.nerf, device="cpu")
+    ds = load_dataset(args.data, downscale=args.downscale)
+    splits = {"val": list(range(0, len(ds), 10)), "held_out": list(range(5, len(ds), 10))}
+    render_image(model, ds.cameras[0])  # warm-up: kernels, allocator
+    for substeps in args.substeps:
+        row, times, density, color = {"substeps": substeps}, [], [], []
+        for split, views in splits.items():
+            psnrs = []
+            for i in views:
+                t = time.perf_counter()
+                out = render_image(model, ds.cameras[i], background=(1.0, 1.0, 1.0), substeps=substeps)
+                times.append(time.perf_counter() - t)
+                img = ds.images[i]
+                gt = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
+                psnrs.append(-10.0 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
+                density.append(out["density_samples_per_ray"])
+                color.append(out["color_samples_per_ray"])
+            row[f"{split}_psnr"] = float(np.mean(psnrs))
+        row.update({"frame_s_median": float(np.median(times)), "density_samples_per_ray": float(np.mean(density)),
+                    "color_samples_per_ray": float(np.mean(color))})
+        print(json.dumps(row), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
