@@ -221,6 +221,8 @@ def test_error_map_draws_rays_where_the_error_is_and_follows_the_loss(tmp_path):
     trainer.record_errors(torch.tensor([0]), torch.tensor([0.0]))
     assert trainer.tile_error[0].item() == pytest.approx(0.5 * (0.5 * 1e-8 + 0.5 * 0.2))
     assert torch.all(trainer.tile_error > 0)  # multinomial needs a positive total
+    with pytest.raises(ValueError, match="error_rays"):
+        Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(error_rays=1.5))
 
 
 def test_masked_out_pixels_are_never_drawn_for_training(tmp_path):

@@ -75,7 +75,7 @@ class TrainOptions:
     distortion_weight: float | None = None  # None: 0.01 for unbounded NeRFs, 0 for bounded ones
     # instant-ngp's error map: this fraction of each step's rays is drawn from tiles of ERROR_TILE^2 pixels in
     # proportion to their recent loss, the rest uniformly (datasets with masks: all uniformly). Off: on fern
-    # 0.5 was ahead at 1 and 3 min (+0.47, +0.32 dB val) and even at 10 (-0.03 val, +0.01 held-out).
+    # 0.5 was ahead at 1 and 3 min (+0.47, +0.32 dB val) and level at 10 (-0.03 val, +0.01 held-out).
     error_rays: float = 0.0
 
 
@@ -152,6 +152,8 @@ class Trainer:
         self.distortion_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
         # Error map: each tile's running loss; 1 (above any loss of colours in [0, 1]) until first drawn, so
         # that every tile is visited. Not kept in checkpoints: a resumed run rebuilds it within a few steps.
+        if not 0.0 <= self.opt.error_rays <= 1.0:
+            raise ValueError(f"error_rays = {self.opt.error_rays!r}: a fraction of the rays, from 0 to 1")
         self.tiles_y, self.tiles_x = -(-h // ERROR_TILE), -(-w // ERROR_TILE)
         self.tile_error = None
         if self.opt.error_rays > 0 and self.valid_pixels is None:
