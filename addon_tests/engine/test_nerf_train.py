@@ -221,6 +221,9 @@ def test_error_map_draws_rays_where_the_error_is_and_follows_the_loss(tmp_path):
     trainer.record_errors(torch.tensor([0]), torch.tensor([0.0]))
     assert trainer.tile_error[0].item() == pytest.approx(0.5 * (0.5 * 1e-8 + 0.5 * 0.2))
     assert torch.all(trainer.tile_error > 0)  # multinomial needs a positive total
+    trainer.tile_error.fill_(1.0)
+    trainer.step()  # a training step records its rays' errors
+    assert 0 < int((trainer.tile_error < 1.0).sum()) and bool(torch.isfinite(trainer.tile_error).all())
     with pytest.raises(ValueError, match="error_rays"):
         Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(error_rays=1.5))
 
