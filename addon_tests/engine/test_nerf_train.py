@@ -139,9 +139,11 @@ def test_cli_train_resume_eval_render(sphere, tmp_path):
         assert np.abs(written - want).max() <= 1, substeps
     with Image.open(one / "r_0.png") as im_one, Image.open(out / "r_0.png") as im_final:
         assert not np.array_equal(np.asarray(im_one), np.asarray(im_final))
-    proc = _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", one, "--substeps", "0",
-                check=False)
-    assert proc.returncode == 2 and "--substeps" in proc.stderr
+    for bad in ("0", "17", "nan", "1.5"):  # each refused by the argument parser, before torch loads
+        proc = _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", one, "--substeps", bad,
+                    check=False)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "argument --substeps: " in proc.stderr and bad in proc.stderr.splitlines()[-1], proc.stderr
 
     half = tmp_path / "half"
     _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", half, "--downscale", "2")

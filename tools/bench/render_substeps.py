@@ -14,16 +14,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
-
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
+from nerf_train import evaluate  # noqa: E402  (its PSNR, frame time and samples per ray, on the same splits)
 
 
 def main() -> int:
@@ -39,21 +37,8 @@ def main() -> int:
     splits = {"val": list(range(0, len(ds), 10)), "held_out": list(range(5, len(ds), 10))}
     render_image(model, ds.cameras[0])  # warm-up: kernels, allocator
     for substeps in args.substeps:
-        row, times, density, color = {"substeps": substeps}, [], [], []
-        for split, views in splits.items():
-            psnrs = []
-            for i in views:
-                t = time.perf_counter()
-                out = render_image(model, ds.cameras[i], background=(1.0, 1.0, 1.0), substeps=substeps)
-                times.append(time.perf_counter() - t)
-                img = ds.images[i]
-                gt = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
-                psnrs.append(-10.0 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
-                density.append(out["density_samples_per_ray"])
-                color.append(out["color_samples_per_ray"])
-            row[f"{split}_psnr"] = float(np.mean(psnrs))
-        row.update({"frame_s_median": float(np.median(times)), "density_samples_per_ray": float(np.mean(density)),
-                    "color_samples_per_ray": float(np.mean(color))})
+        results = {split: evaluate(model, ds.subset(views), substeps=substeps) for split, views in splits.items()}
+        row = {"substeps": substeps, **{f"{split}_{key}": value for split, r in results.items() for key, value in r.items()}}
         print(json.dumps(row), flush=True)
     return 0
 

@@ -31,9 +31,16 @@ def _command(module: str):
 
 
 def _substeps_argument(p: argparse.ArgumentParser) -> None:
-    from ..nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
+    from ..nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS, check_substeps
 
-    p.add_argument("--substeps", type=int, default=FINAL_SUBSTEPS, choices=range(1, MAX_SUBSTEPS + 1), metavar="S",
+    def substeps(text: str) -> int:  # the renderer's own check, so the two bounds cannot drift apart
+        try:
+            return check_substeps(int(text))
+        except (ValueError, EngineError) as exc:
+            raise argparse.ArgumentTypeError(str(exc) if isinstance(exc, EngineError) else
+                                             f"{text!r} is not an integer") from None
+
+    p.add_argument("--substeps", type=substeps, default=FINAL_SUBSTEPS, metavar="S",
                    help=f"samples per step of the NeRF's march (1 to {MAX_SUBSTEPS}): more is finer and slower; "
                         f"default {FINAL_SUBSTEPS}, the quality of final frames; 1 the speed of previews")
 
