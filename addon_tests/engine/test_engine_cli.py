@@ -51,3 +51,36 @@ def test_unknown_command_fails_with_usage():
     proc = _cli("bake")
     assert proc.returncode == 2
     assert "invalid choice: 'bake'" in proc.stderr
+
+
+# A process that ends through exit_process (as `python -m blender_nerf_deform.engine` and the worker do):
+# exit handlers registered, a temporary folder left to its finalizer, output unflushed, and (with an
+# argument) a non-daemon thread that finishes writing a file after the main thread is done.
+_EXIT_PROCESS = """
+import atexit, sys, tempfile, threading, time
+from blender_nerf_deform.engine.process_exit import exit_process
+atexit.register(lambda: print("exit handler ran"))
+folder = tempfile.TemporaryDirectory()
+print("folder", folder.name, end="")  # no newline: stays in the pipe's buffer
+sys.stderr.write("to stderr")
+if len(sys.argv) > 1:
+    def late():
+        time.sleep(1.0)
+        open(sys.argv[1], "w").write("written")
+    threading.Thread(target=late).start()
+exit_process(3)
+"""
+
+
+def test_exit_process_runs_exit_handlers_flushes_and_keeps_the_code(tmp_path):
+    from pathlib import Path
+
+    proc = subprocess.run([sys.executable, "-c", _EXIT_PROCESS], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 3, proc.stderr
+    assert proc.stdout.startswith("folder ") and "exit handler ran" in proc.stdout
+    assert proc.stderr == "to stderr"
+    assert not Path(proc.stdout.split()[1]).exists()  # tempfile's finalizer ran
+    # A non-daemon thread still running: the ordinary exit, which waits for it.
+    marker = tmp_path / "late.txt"
+    proc = subprocess.run([sys.executable, "-c", _EXIT_PROCESS, str(marker)], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 3 and marker.read_text() == "written", proc.stderr

@@ -201,4 +201,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from ..process_exit import exit_process
+
+    exit_process(main())
