@@ -3,7 +3,8 @@
 
 Validation split: every 10th view (lego's 90: indices 0, 10, ..., 80) is held
 out; the others train. With --final, the views 5, 15, 25, ... are kept out as well, from
-training and from the validation marks: they are rendered once, at the end, the figure on
+training and from the validation marks (with --train-val too the validation views train, as a
+user's `train` uses every photo it is given; the marks then score views it trained on): they are rendered once, at the end, the figure on
 photos nothing was tuned on (tune on the validation marks, report the final split), marched at the
 training step (`final`, comparable with earlier figures) and as `render` and F12 march final frames
 (`final_substeps`: substeps.FINAL_SUBSTEPS samples per step). PSNR is on white (photos without alpha: on the photo itself),
@@ -80,6 +81,9 @@ def main() -> int:
     ap.add_argument("--occ-threshold", type=float, default=None, help="occupancy threshold (opacity over one render step)")
     ap.add_argument("--final", action="store_true",
                     help="also keep views 5, 15, 25, ... out, evaluated only once at the end (never tune on them)")
+    ap.add_argument("--train-val", action="store_true",
+                    help="with --final, the validation views train too: a user's training set, every photo but the "
+                         "held-out ones (the marks' val PSNR is then on views it trained on)")
     ap.add_argument("--appearance-dim", type=int, default=0, help="per-image appearance code size (0: none)")
     ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
     ap.add_argument("--occ-every", type=int, default=None, help="update the occupancy grids every this many steps (default: 16 per grid)")
@@ -89,6 +93,8 @@ def main() -> int:
                     help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)")
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
     args = ap.parse_args()
+    if args.train_val and not args.final:
+        ap.error("--train-val needs --final: without held-out views nothing would be left unseen")
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.train_round:
@@ -97,7 +103,7 @@ def main() -> int:
     ds = load_dataset(args.data, downscale=args.downscale)
     val_idx = list(range(0, len(ds), 10))
     final_idx = list(range(5, len(ds), 10)) if args.final else []
-    train = ds.subset([i for i in range(len(ds)) if i % 10 and i not in final_idx])
+    train = ds.subset([i for i in range(len(ds)) if (i % 10 or args.train_val) and i not in final_idx])
     val = ds.subset(val_idx)
     cfg = config_for(ds, args.scene)
     if args.steps_per_diagonal:
@@ -162,6 +168,7 @@ def main() -> int:
         final_substeps.update({"views": final_idx, "substeps": FINAL_SUBSTEPS})
         print(json.dumps({"final_substeps": final_substeps}), flush=True)
     summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],
+               "val_trained": args.train_val,
                "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
                "results": results, "final": final,
                "final_substeps": final_substeps, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
