@@ -194,6 +194,31 @@ def test_hostile_preview_cameras_of_a_checkpoint_are_input_errors(worker, sphere
     assert header["type"] == "result" and arrays["rgba"].shape == (24, 32, 4) and arrays["rgba"][..., 3].max() > 0.5
 
 
+
+def test_a_render_request_with_bad_substeps_is_an_input_error_and_good_ones_render(worker, sphere_nerf):
+    """The `render` op's substeps (the add-on's Render Substeps, sent as JSON): anything but an integer
+    from 1 to MAX_SUBSTEPS is one input error, before the NeRF is loaded; 1 and FINAL_SUBSTEPS render."""
+    from blender_nerf_deform.engine.nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
+
+    pose = np.eye(4)
+    pose[2, 3] = 3.0
+    params = {"checkpoint": str(sphere_nerf[0]), "pose": {"kind": "rest"},
+              "camera": {"camera_to_world": pose.tolist(), "fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0,
+                         "width": 32, "height": 24}}
+    for k, bad in enumerate([0, MAX_SUBSTEPS + 1, 1.5, "2", True, None, float("nan")]):
+        worker.request(k, "render", {**params, "substeps": bad})
+        header, _ = worker.until(k)
+        assert header["type"] == "error" and header["kind"] == "input", (bad, header)
+        assert "substeps" in header["message"] and "1 to 16" in header["message"], (bad, header["message"])
+    images = {}
+    for k, substeps in enumerate((1, FINAL_SUBSTEPS), start=50):
+        worker.request(k, "render", {**params, "substeps": substeps})
+        header, arrays = worker.until(k)
+        assert header["type"] == "result", header
+        images[substeps] = arrays["rgba"]
+    assert images[1].shape == (24, 32, 4) and images[1][..., 3].max() > 0.5
+    assert not np.array_equal(images[1], images[FINAL_SUBSTEPS])  # the finer march is another quadrature
+
 @pytest.mark.slow
 def test_prepare_op_reports_its_stages_and_a_cancel_leaves_nothing(worker, tmp_path):
     write_corner_photos(tmp_path / "photos", n_views=8, width=160, height=120, focal=130.0)
