@@ -3,13 +3,14 @@
 
 Validation split: every 10th view (lego's 90: indices 0, 10, ..., 80) is held
 out; the others train. With --final, the views 5, 15, 25, ... are kept out as well, from
-training and from the validation marks (with --train-val too the validation views train, as a
-user's `train` uses every photo it is given; the marks then score views it trained on): they are rendered once, at the end, the figure on
-photos nothing was tuned on (tune on the validation marks, report the final split), marched at the
-training step (`final`, comparable with earlier figures) and as `render` and F12 march final frames
-(`final_substeps`: substeps.FINAL_SUBSTEPS samples per step). PSNR is on white (photos without alpha: on the photo itself),
-over all held-out views, measured at the
-given training times (the time spent validating is not counted). Also reports the
+training and from the validation marks (with --train-val the validation views train too, as a
+user's `train` uses every photo it is given; the marks then score views it trained on): they
+are rendered once, at the end, the figure on photos nothing was tuned on (tune on the
+validation marks, report the final split), marched at the training step (`final`, comparable
+with earlier figures) and as `render` and F12 march final frames (`final_substeps`:
+substeps.FINAL_SUBSTEPS samples per step). PSNR is on white (photos without alpha: on the
+photo itself), over all held-out views, measured at the given training times (the time spent
+validating is not counted). Also reports the
 render time of one 200x200 validation frame, samples per ray and peak memory (RSS).
 
     flock /tmp/nerf_cpu.lock .venv/bin/python tools/bench/nerf_train.py \\
