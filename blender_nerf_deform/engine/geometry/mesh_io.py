@@ -50,7 +50,7 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     if part is not None:
         part = np.asarray(part, dtype=np.int64).ravel()
         if len(part) != len(vertices) or (len(part) and (part.min() < 0 or part.max() > 255)):
-            raise EngineError(f"write_ply: part labels must be 0..255, one per vertex")
+            raise EngineError("write_ply: part labels must be 0..255, one per vertex")
         part = part if len(part) and part.max() > 0 else None
     if part is not None:
         fields += [("nerf_part", "u1")]
