@@ -45,6 +45,11 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def split_views(n_views: int) -> tuple[list[int], list[int]]:
+    """(validation views 0, 10, 20, ...; held-out views 5, 15, 25, ... of a --final run) of a dataset."""
+    return list(range(0, n_views, 10)), list(range(5, n_views, 10))
+
+
 def evaluate(model, ds, substeps: int = 1) -> dict:
     psnrs, times, spr, cspr = [], [], [], []
     for cam, img in zip(ds.cameras, ds.images):
@@ -102,9 +107,9 @@ def main() -> int:
         renderer.TRAIN_SAMPLES_PER_ROUND = args.train_round
 
     ds = load_dataset(args.data, downscale=args.downscale)
-    val_idx = list(range(0, len(ds), 10))
-    final_idx = list(range(5, len(ds), 10)) if args.final else []
-    train = ds.subset([i for i in range(len(ds)) if (i % 10 or args.train_val) and i not in final_idx])
+    val_idx, held_out = split_views(len(ds))
+    final_idx = held_out if args.final else []
+    train = ds.subset([i for i in range(len(ds)) if i not in final_idx and (args.train_val or i not in val_idx)])
     val = ds.subset(val_idx)
     cfg = config_for(ds, args.scene)
     if args.steps_per_diagonal:

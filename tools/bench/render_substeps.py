@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
-from nerf_train import evaluate  # noqa: E402  (its PSNR, frame time and samples per ray, on the same splits)
+from nerf_train import evaluate, split_views  # noqa: E402  (its splits; its PSNR, frame time and samples per ray)
 
 
 def main() -> int:
@@ -34,7 +34,7 @@ def main() -> int:
 
     model = load_nerf(args.nerf, device="cpu")
     ds = load_dataset(args.data, downscale=args.downscale)
-    splits = {"val": list(range(0, len(ds), 10)), "held_out": list(range(5, len(ds), 10))}
+    splits = dict(zip(("val", "held_out"), split_views(len(ds))))
     render_image(model, ds.cameras[0])  # warm-up: kernels, allocator
     for substeps in args.substeps:
         results = {split: evaluate(model, ds.subset(views), substeps=substeps) for split, views in splits.items()}
