@@ -243,3 +243,28 @@ def test_prepare_op_reports_its_stages_and_a_cancel_leaves_nothing(worker, tmp_p
     assert time.perf_counter() - started < 3.0
     assert not (tmp_path / "run2").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos", "run"]
+
+
+def test_warm_loads_each_checkpoint_and_renders_a_view_of_it_and_refuses_bad_params(worker, sphere_nerf, tmp_path):
+    """`warm` (what Blender sends when a file with NeRFs opens): each checkpoint loaded and a small view
+    of its box rendered, which meets the NeRF (colour samples > 0: every frame kernel ran); then a frame
+    of it renders. Anything but a list of paths, or a path that is no checkpoint, is one input error."""
+    broken = tmp_path / "broken.ckpt"
+    broken.write_bytes(b"not a checkpoint")
+    for k, bad in enumerate(["x", [1], None, {"a": 1}, [str(tmp_path / "missing.ckpt")], [str(broken)]]):
+        worker.request(k, "warm", {"checkpoints": bad})
+        header, _ = worker.until(k)
+        assert header["type"] == "error" and header["kind"] == "input", (bad, header)
+        assert ("checkpoint" in header["message"]), (bad, header["message"])
+    worker.request(20, "warm", {"checkpoints": [str(sphere_nerf[0])]})
+    header, _ = worker.until(20)
+    assert header["type"] == "result", header
+    assert len(header["result"]["color_samples_per_ray"]) == 1 and header["result"]["color_samples_per_ray"][0] > 0
+    assert any(h.get("id") == 20 and h["type"] == "progress" and "loaded" in h.get("message", "") for h, _ in worker.log)
+    pose = np.eye(4)
+    pose[2, 3] = 3.0
+    worker.request(21, "render", {"checkpoint": str(sphere_nerf[0]), "pose": {"kind": "rest"},
+                                  "camera": {"camera_to_world": pose.tolist(), "fx": 30.0, "fy": 30.0, "cx": 16.0,
+                                             "cy": 12.0, "width": 32, "height": 24}})
+    header, arrays = worker.until(21)
+    assert header["type"] == "result" and arrays["rgba"][..., 3].max() > 0.5

@@ -2,7 +2,7 @@
 "Set Up Worker" (worker/setup.py) makes one, drawn here."""
 
 import bpy
-from bpy.props import EnumProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..data.paths import ADDON_PACKAGE, addon_preferences  # the name Blender knows the add-on's preferences by
 from ..worker import setup as worker_setup
@@ -40,9 +40,17 @@ class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
                     "else a python3.11 found on the system)",
     )
 
+    start_worker_on_open: BoolProperty(
+        name="Start Worker on Open",
+        description="When a file with NeRFs opens, start the worker and load its NeRFs in the background, so that "
+        "the first render waits for neither (the worker then holds their memory)",
+        default=True,
+    )
+
     def draw(self, context):
         layout = self.layout
         layout.prop(self, "worker_python")
+        layout.prop(self, "start_worker_on_open")
         layout.label(text="A Python 3.11 with torch (CPU or CUDA): set one up below, or see the README.")
         draw_worker_environment(layout, context)
 

@@ -82,17 +82,20 @@ class _Request:
 
 def worker_environment(inherit_pythonpath: bool = True) -> tuple[dict, str]:
     """(environment, working folder) of an engine process started for the worker: the engine's package
-    importable, and its compiled files (numba's kernel cache, Python's bytecode) in the user folder,
-    so that Set Up Worker's `compile` fills the cache the worker reads. An installed extension's own
-    folder is Blender's to replace, not ours to write."""
+    importable, numba's kernel cache in the user folder (so that Set Up Worker's `compile` fills the
+    cache the worker reads), and no bytecode written: an installed extension's own folder is Blender's
+    to replace, not ours to write. The engine's few modules compile at each start (~0.1 s); torch and the
+    other packages load the bytecode their install wrote. (Redirecting all bytecode to the user folder
+    with PYTHONPYCACHEPREFIX, as before, hid that bytecode too: every start compiled torch again where
+    PYTHONDONTWRITEBYTECODE is set, as in containers, 3.7 s against 1.3 s; BENCHMARKS.md, issue 28.)"""
     env = dict(os.environ)
     env.pop("PYTHONHOME", None)
     inherited = env.get("PYTHONPATH", "") if inherit_pythonpath else ""
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PACKAGE_DIR.parent), inherited) if p)
     env["PYTHONUNBUFFERED"] = "1"
+    env["PYTHONDONTWRITEBYTECODE"] = "1"
     work = worker_directory()
     env.setdefault("NUMBA_CACHE_DIR", os.path.join(work, "numba_cache"))
-    env.setdefault("PYTHONPYCACHEPREFIX", os.path.join(work, "pycache"))
     return env, work
 
 
