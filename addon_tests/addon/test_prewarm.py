@@ -42,13 +42,13 @@ def test_opening_a_file_in_background_starts_nothing_and_prewarm_readies_the_wor
     assert thread.is_alive()  # back at once: the worker's start (a torch import) runs on the thread
     thread.join(timeout=300)
     assert not thread.is_alive() and client.running and client.sent[-1][0] == "warm"
-    pid = client._proc.pid
+    pid = client.call("info")[0]["pid"]  # answered after warm's: the worker serves in order
 
     bpy.context.scene.render.filepath = str(tmp_path / "f12.png")
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
-    assert client._proc.pid == pid  # the frame rendered on the worker the file's opening started
     ops = [op for op, _ in client.sent]
-    assert ops[ops.index("warm"):] == ["warm", "render", "render"]  # the frame of each NeRF shown, after warm
+    assert ops[ops.index("warm"):] == ["warm", "info", "render", "render"]  # the frame of each NeRF shown
+    assert client.call("info")[0]["pid"] == pid  # rendered on the worker the file's opening started
     assert client.drain() >= 1  # warm's answer (a result: no error was reported)
     alpha = np.asarray(Image.open(tmp_path / "f12.png").convert("RGBA"))[..., 3]
     assert alpha.max() > 200 and alpha.min() < 20

@@ -26,9 +26,9 @@ from ..worker.client import WorkerClient, WorkerError
 
 
 def file_nerfs() -> list[str]:
-    """The checkpoints of the open file's NeRF objects: files that exist, each once."""
+    """The checkpoints of the NeRF objects in the open file's scene: files that exist, each once."""
     checkpoints = []
-    for obj in bpy.data.objects:
+    for obj in bpy.context.scene.objects:
         settings = obj.nerf_deform
         if settings.role != "NERF" or not settings.checkpoint:
             continue
