@@ -38,7 +38,7 @@ def file_nerfs() -> list[str]:
     return checkpoints
 
 
-def _report(error: WorkerError) -> None:
+def _report(error: Exception) -> None:
     # The first render says the same to the artist, in the place they look; here the console only.
     print(f"NeRF Deform: loading the file's NeRFs ahead of rendering failed: {error}", file=sys.stderr)
 
@@ -50,7 +50,7 @@ def start(client: WorkerClient, checkpoints: list[str]) -> threading.Thread:
     def run():
         try:
             client.submit("warm", {"checkpoints": checkpoints}, on_error=_report)
-        except WorkerError as error:
+        except Exception as error:  # whatever it was, a convenience that failed: one line, no traceback
             _report(error)
 
     thread = threading.Thread(target=run, name="nerf-worker-prewarm", daemon=True)
