@@ -35,14 +35,14 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 
-def _blender(register: bool = True):
+def _blender():
+    """The bpy module with the add-on registered, its worker on this Python."""
     os.environ.setdefault("NERF_DEFORM_PYTHON", sys.executable)
     import bpy
 
     import blender_nerf_deform
 
-    if register:
-        blender_nerf_deform.register()
+    blender_nerf_deform.register()
     return bpy
 
 
