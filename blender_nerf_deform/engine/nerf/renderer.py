@@ -267,10 +267,10 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
     kept_parts = []  # with gradients: the samples to re-evaluate, per round
     while alive.numel():
         k = int(min(K_MAX, max(K_MIN, samples_per_round // alive.numel())))
-        ray_idx, t, dt = _round_samples(o, d, alive, state, k, grids)
+        ts, dts, counts = march_kernels.march_round(o, d, alive, state, k, grids)
+        ray_idx, t, dt, pts, sdirs = march_kernels.gather_samples(o, d, alive, ts, dts, counts)
+        del ts, dts
         if ray_idx.numel():
-            pts = o[ray_idx] + d[ray_idx] * t[:, None]
-            sdirs = d[ray_idx]
             keep = density_scale = None
             if sample_transform is not None:
                 pts, sdirs, keep, *extra = sample_transform(pts, sdirs)
@@ -323,15 +323,19 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
         return color * scale[:, None], alpha * scale, depth * scale, n_density, n_color
     if not kept_parts:
         return color, alpha, depth, n_density, 0
-    ray_idx, t, dt, enc, xs, sdirs, keep = (torch.cat(p) if p[0] is not None else None for p in zip(*kept_parts))
-    order = torch.sort(ray_idx, stable=True).indices  # rounds came ray-interleaved: back to ray, then t
-    ray_idx, t, dt, enc, xs, sdirs = ray_idx[order], t[order], dt[order], enc[order], xs[order], sdirs[order]
+    if len(kept_parts) == 1:  # one round: its samples are already sorted by ray, then t
+        ray_idx, t, dt, enc, xs, sdirs, keep = kept_parts[0]
+    else:
+        ray_idx, t, dt, enc, xs, sdirs, keep = (torch.cat(p) if p[0] is not None else None for p in zip(*kept_parts))
+        order = torch.sort(ray_idx, stable=True).indices  # rounds came ray-interleaved: back to ray, then t
+        ray_idx, t, dt, enc, xs, sdirs = ray_idx[order], t[order], dt[order], enc[order], xs[order], sdirs[order]
+        keep = None if keep is None else keep[order]
     # Second pass with autograd on the samples that can still be seen; the encoding of the first
     # pass is reused (only its backward runs) where the CPU kernels apply.
     inside = ((xs >= 0) & (xs <= 1)).all(dim=-1)
     sigma, geo = model.features_from_encoding(model.encoding.reuse(enc, xs), inside)
     if keep is not None:
-        sigma = sigma * keep[order]
+        sigma = sigma * keep
     rgb = model.color(geo, sdirs, None if appearance is None else appearance[ray_idx])
     tau = sigma * dt
     trans = _exclusive_transmittance(tau, ray_idx, n)
