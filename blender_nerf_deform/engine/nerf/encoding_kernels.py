@@ -43,7 +43,8 @@ if backend.HAVE_NUMBA:
         """The table rows (r0..r7) and trilinear weights (w0..w7) of the 8 corners of a point's cell at one
         level, corner c at offset (c & 1, c >> 1 & 1, c >> 2 & 1). Written out corner by corner (not a loop
         over c calling a row function): the shared terms of the 8 rows and weights are computed once,
-        which makes the forward and backward kernels 25-40 % faster (BENCHMARKS.md, issue 28)."""
+        which made the backward kernel about twice as fast and the forward 10-20 % (BENCHMARKS.md,
+        issue 28)."""
         fx = _unit(px) * res
         fy = _unit(py) * res
         fz = _unit(pz) * res
