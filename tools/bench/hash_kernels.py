@@ -88,13 +88,10 @@ def one_step_samples(trainer: Trainer) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return density, x, g
 
 
-def timed(fn, repeats: int) -> list[float]:
-    out = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t)
-    return out
+def seconds(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
 
 
 def summary(name: str, times: list[float], unit: float = 1e3) -> str:
@@ -144,10 +141,10 @@ def main() -> int:
     for r in range(args.repeats):
         for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
             fwd, bwd = kernels[name]
-            times[f"{name} forward"] += timed(lambda: fwd(density, table, arrs.res, arrs.dense, arrs.size, arrs.off,
-                                                          outs[name]), 1)
-            times[f"{name} backward"] += timed(lambda: bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off,
-                                                           *grads[name]), 1)
+            times[f"{name} forward"].append(seconds(lambda: fwd(density, table, arrs.res, arrs.dense, arrs.size,
+                                                                arrs.off, outs[name])))
+            times[f"{name} backward"].append(seconds(lambda: bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off,
+                                                                 *grads[name])))
     for r in range(args.repeats):
         for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
             use(kernels[name])
@@ -168,7 +165,7 @@ def main() -> int:
         for r in range(6):
             for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
                 use(kernels[name])
-                frame[name] += timed(lambda: render_image(trainer.model, camera, substeps=2), 1)
+                frame[name].append(seconds(lambda: render_image(trainer.model, camera, substeps=2)))
         use(kernels["new"])
         for name, values in frame.items():
             print(summary(f"{name} frame {camera.width}x{camera.height} s", values, unit=1.0), flush=True)
