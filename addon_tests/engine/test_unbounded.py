@@ -238,3 +238,66 @@ def test_occupancy_updates_cost_an_unbounded_model_what_they_cost_a_bounded_one(
         updated.append((scene, every, sorted(set(steps)), expected))
         assert len(steps) == len(trainer.grids) * len(expected)
     assert all(got == expected for *_, got, expected in updated), updated
+
+
+def test_pose_refinement_s_gradient_turns_a_wrong_pose_back_and_resumes(tmp_path):
+    """A room NeRF trained on true poses; one photo then given a pose 3 degrees off. The gradient of that
+    photo's error in its pose correction (through the rays, the reused encoding's position gradient and
+    the contraction) points back towards the true pose, and followed downhill it undoes more than half of
+    the error; the corrections round-trip through the trainer state; before `pose_start` the poses stay
+    as given."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from blender_nerf_deform.engine.errors import EngineError
+
+    train = load_dataset(write_room_dataset(tmp_path / "room", n_views=24, size=64))
+    cfg = config_for(train, "unbounded")
+    for k, v in dict(log2_table_size=14, occ_resolution=64).items():
+        setattr(cfg, k, v)
+    torch.manual_seed(0)
+    model = NerfModel(cfg)
+    Trainer(model, train, TrainOptions(steps=500, target_samples=1 << 13, occ_warmup_steps=64)).train(progress=False)
+    k, axis = 5, np.array([0.3, 1.0, -0.5]) / np.linalg.norm([0.3, 1.0, -0.5])
+    wrong = Rotation.from_rotvec(np.deg2rad(3.0) * axis).as_matrix()
+    c2w = np.array(train.cameras[k].c2w, dtype=np.float64)
+    c2w[:3, :3] = wrong @ c2w[:3, :3]
+    train.cameras[k] = dataclasses.replace(train.cameras[k], c2w=c2w)
+    opts = TrainOptions(steps=10, refine_poses=True, pixel_jitter=False, random_background=False)
+    trainer = Trainer(model, train, opts)
+    pixels = torch.arange(k * 64 * 64, (k + 1) * 64 * 64)
+    o, d, target, _ = trainer.sample_rays(pixels.numel(), pixels)
+    assert o.requires_grad and d.requires_grad
+    out = renderer.render_rays(model, o, d, chunk=1 << 20)
+    ((out["rgb"] - target[:, :3]) ** 2).mean().backward()
+    g = trainer.pose_delta.grad
+    assert torch.count_nonzero(g[:k]) == 0 and torch.count_nonzero(g[k + 1:]) == 0  # only photo k's rays ran
+    assert (-g[k, :3].double().numpy()) @ -axis > 0  # downhill is towards the true pose
+    # Followed downhill (the field fixed, every pixel of the photo), the correction undoes most of the error.
+    steps = torch.optim.Adam([trainer.pose_delta], lr=4e-3)
+    for _ in range(40):
+        steps.zero_grad()
+        o, d, target, _ = trainer.sample_rays(pixels.numel(), pixels)
+        ((renderer.render_rays(model, o, d, chunk=1 << 20)["rgb"] - target[:, :3]) ** 2).mean().backward()
+        steps.step()
+    rot, _ = trainer.pose_corrections()
+    residual = np.rad2deg(Rotation.from_matrix(rot[k].detach().double().numpy() @ wrong).magnitude())
+    assert residual < 1.5, residual
+    # The corrections are part of the trainer state; a state for another number of photos is refused.
+    with torch.no_grad():
+        trainer.pose_delta.zero_()
+        trainer.pose_delta[k, :3] = torch.from_numpy(-np.deg2rad(3.0) * axis).float()
+    state = trainer.state_dict()
+    again = Trainer(model, train, opts)
+    again.load_state_dict(state)
+    assert torch.equal(again.pose_delta, trainer.pose_delta)
+    rot, _ = again.pose_corrections()
+    assert np.allclose(rot[k].detach().double().numpy() @ wrong, np.eye(3), atol=1e-5)
+    state["pose_delta"] = state["pose_delta"][:4]
+    with pytest.raises(EngineError, match="pose corrections"):
+        again.load_state_dict(state)
+    # Before pose_start the rays are the photos' own and carry no gradient.
+    late = Trainer(model, train, TrainOptions(steps=10, refine_poses=True, pose_start=0.5))
+    o, d, _, _ = late.sample_rays(64)
+    assert not o.requires_grad and not late.poses_move()

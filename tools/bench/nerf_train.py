@@ -64,6 +64,17 @@ def evaluate(model, ds, substeps: int = 1) -> dict:
             "density_samples_per_ray": float(np.mean(spr)), "color_samples_per_ray": float(np.mean(cspr))}
 
 
+def pose_summary(trainer: Trainer) -> dict | None:
+    """How far pose refinement moved the training photos: mean and largest rotation (degrees) and shift."""
+    if trainer.pose_delta is None:
+        return None
+    with torch.no_grad():
+        angle = torch.rad2deg(trainer.pose_delta[:, :3].norm(dim=-1))
+        shift = trainer.pose_corrections()[1].norm(dim=-1)
+    return {"rotation_deg_mean": float(angle.mean()), "rotation_deg_max": float(angle.max()),
+            "shift_mean": float(shift.mean()), "shift_max": float(shift.max()), "scene_half_width": trainer.pose_scale}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/datasets/lego_200")
@@ -98,6 +109,10 @@ def main() -> int:
     ap.add_argument("--error-rays", type=float, default=None,
                     help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)")
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
+    ap.add_argument("--refine-poses", action="store_true", help="learn a correction of each training photo's pose")
+    ap.add_argument("--pose-lr", type=float, default=None, help="its peak learning rate (default: TrainOptions.pose_lr)")
+    ap.add_argument("--pose-start", type=float, default=None,
+                    help="fraction of the budget before the poses move (default: TrainOptions.pose_start)")
     args = ap.parse_args()
     if args.train_val and not args.final:
         ap.error("--train-val needs --final: without held-out views nothing would be left unseen")
@@ -141,6 +156,11 @@ def main() -> int:
         opts.occ_update_every = args.occ_every
     if args.error_rays is not None:
         opts.error_rays = args.error_rays
+    opts.refine_poses = args.refine_poses
+    if args.pose_lr is not None:
+        opts.pose_lr = args.pose_lr
+    if args.pose_start is not None:
+        opts.pose_start = args.pose_start
     torch.manual_seed(0)
     model = NerfModel(cfg).to(args.device)
     trainer = Trainer(model, train, opts)
@@ -175,9 +195,9 @@ def main() -> int:
         print(json.dumps({"final_substeps": final_substeps}), flush=True)
     summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],
                "val_trained": args.train_val,
-               "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor")},
+               "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor", "refine_poses", "pose_lr", "pose_start")},
                "results": results, "final": final,
-               "final_substeps": final_substeps, "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
+               "final_substeps": final_substeps, "pose_corrections": pose_summary(trainer), "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
                "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
                "threads": torch.get_num_threads(), "torch": torch.__version__,
                "device": str(model.device) + (f" ({torch.cuda.get_device_name()})" if model.device.type == "cuda" else "")}

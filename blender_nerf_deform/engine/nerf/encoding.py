@@ -141,9 +141,8 @@ class HashEncoding(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Encode points x (N, 3) in [0, 1]^3 (clamped) → (N, n_levels * n_features), level-major.
 
-        CPU float32 with positions that need no gradient: the fused numba kernels
-        (gradient to the table only). Otherwise (CUDA, or x.requires_grad): torch,
-        differentiable in both the table and the positions.
+        CPU float32: the fused numba kernels; otherwise (CUDA): torch. Both are
+        differentiable in the table and in the positions.
         """
         if encoding_kernels.kernels_apply(x, self.table):
             return encoding_kernels.HashEncodeCPU.apply(x, self.table, self)

@@ -7,9 +7,10 @@ These kernels compute each point's indices, weights and features in registers
 and write only the (N, L*F) output: forward parallel over points, backward
 parallel over levels (levels own disjoint table rows, so no atomics are needed).
 
-The kernels are used only for CPU tensors whose positions do not require
-gradients and when `backend.use_kernels` says so; CUDA (and any other case)
-takes the torch path of `encoding.py`, so the same model runs everywhere.
+The kernels are used for CPU float32 tensors when `backend.use_kernels` says so
+(positions that require a gradient, for camera pose refinement, get it from a third
+kernel); CUDA (and any other case) takes the torch path of `encoding.py`, so the
+same model runs everywhere.
 """
 
 from __future__ import annotations
@@ -149,10 +150,83 @@ if backend.HAVE_NUMBA:
                 touched[r7] = 1
 
 
+    @njit(parallel=True, cache=True, fastmath=FAST)
+    def _hash_backward_x(x, grad_out, table, res_arr, dense_arr, size_arr, off_arr, grad_x):
+        """The gradient of the encoding's output with respect to the positions (camera pose refinement):
+        per level, res times the trilinear weights' derivatives against the corners' features dotted
+        with the output gradient; zero along an axis where the position was clamped into [0, 1].
+        Blocks of points level by level, as the forward (its table rows stay in cache)."""
+        n = x.shape[0]
+        n_levels = res_arr.shape[0]
+        nf = table.shape[1]
+        block = 2048
+        n_blocks = (n + block - 1) // block
+        for b in prange(n_blocks):
+            start = b * block
+            stop = min(n, start + block)
+            for i in range(start, stop):
+                grad_x[i, 0] = 0.0
+                grad_x[i, 1] = 0.0
+                grad_x[i, 2] = 0.0
+            for lvl in range(n_levels):
+                res = res_arr[lvl]
+                dense = dense_arr[lvl]
+                size = size_arr[lvl]
+                off = off_arr[lvl]
+                col = lvl * nf
+                for i in range(start, stop):
+                    px, py, pz = x[i, 0], x[i, 1], x[i, 2]
+                    r0, r1, r2, r3, r4, r5, r6, r7, w0, w1, w2, w3, w4, w5, w6, w7 = _corners(
+                        px, py, pz, res, dense, size, off)
+                    # s_c: the output gradient dotted with corner c's features.
+                    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
+                    for f in range(nf):
+                        g = grad_out[i, col + f]
+                        s0 += g * table[r0, f]
+                        s1 += g * table[r1, f]
+                        s2 += g * table[r2, f]
+                        s3 += g * table[r3, f]
+                        s4 += g * table[r4, f]
+                        s5 += g * table[r5, f]
+                        s6 += g * table[r6, f]
+                        s7 += g * table[r7, f]
+                    tx = _unit(px) * res
+                    ty = _unit(py) * res
+                    tz = _unit(pz) * res
+                    tx -= np.floor(tx)
+                    ty -= np.floor(ty)
+                    tz -= np.floor(tz)
+                    ux = 1.0 - tx
+                    uy = 1.0 - ty
+                    uz = 1.0 - tz
+                    # d(weight of corner c)/dt_a: the product of the other two axes' factors, signed by c's bit a.
+                    grad_x[i, 0] += res * (uy * uz * (s1 - s0) + ty * uz * (s3 - s2) + uy * tz * (s5 - s4)
+                                           + ty * tz * (s7 - s6))
+                    grad_x[i, 1] += res * (ux * uz * (s2 - s0) + tx * uz * (s3 - s1) + ux * tz * (s6 - s4)
+                                           + tx * tz * (s7 - s5))
+                    grad_x[i, 2] += res * (ux * uy * (s4 - s0) + tx * uy * (s5 - s1) + ux * ty * (s6 - s2)
+                                           + tx * ty * (s7 - s3))
+            for i in range(start, stop):
+                if not 0.0 < x[i, 0] < 1.0:
+                    grad_x[i, 0] = 0.0
+                if not 0.0 < x[i, 1] < 1.0:
+                    grad_x[i, 1] = 0.0
+                if not 0.0 < x[i, 2] < 1.0:
+                    grad_x[i, 2] = 0.0
+
+
+def positions_grad(x: torch.Tensor, grad_out: torch.Tensor, enc) -> torch.Tensor:
+    """dL/dx (N, 3) of the encoding at positions x given dL/d(encoding) (N, L*F), by `_hash_backward_x`."""
+    arrs = enc._kernel_arrays
+    grad_x = torch.empty(x.shape[0], 3, dtype=x.dtype)
+    _hash_backward_x(x.detach().contiguous().numpy(), grad_out.contiguous().numpy(), enc.table.detach().numpy(),
+                     arrs.res, arrs.dense, arrs.size, arrs.off, grad_x.numpy())
+    return grad_x
+
+
 def kernels_apply(x: torch.Tensor, table: torch.Tensor) -> bool:
-    """Whether the fused CPU kernels can run these tensors (CPU float32, positions without grad)."""
-    return (backend.use_kernels(x.device) and table.device.type == "cpu"
-            and table.dtype == torch.float32 and not x.requires_grad)
+    """Whether the fused CPU kernels can run these tensors (a CPU float32 table)."""
+    return backend.use_kernels(x.device) and table.device.type == "cpu" and table.dtype == torch.float32
 
 
 class LevelArrays:
@@ -177,12 +251,13 @@ class HashReuseCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        _, g, _ = HashEncodeCPU.backward(ctx, grad_out)
-        return None, None, g, None
+        g_x, g = _encoding_backward(ctx, grad_out, ctx.needs_input_grad[1])
+        return None, g_x, g, None
 
 
 class HashEncodeCPU(torch.autograd.Function):
-    """Fused hash encoding on CPU: gradients flow to the table only (positions are data)."""
+    """Fused hash encoding on CPU: gradients flow to the table, and to the positions when they require
+    them (camera pose refinement)."""
 
     @staticmethod
     def forward(ctx, x, table, enc):
@@ -196,14 +271,23 @@ class HashEncodeCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        (x,) = ctx.saved_tensors
-        enc = ctx.enc
-        arrs = enc._kernel_arrays
-        grad_table = enc.grad_buffer()
-        _hash_backward(x.contiguous().numpy(), grad_out.contiguous().numpy(), arrs.res, arrs.dense, arrs.size,
-                       arrs.off, grad_table.numpy(), enc.touched_rows())
-        # In fused-grad mode the gradient stays in the encoding's buffer for the lazy Adam.
-        return None, (None if enc.fused_grad else grad_table), None
+        g_x, g = _encoding_backward(ctx, grad_out, ctx.needs_input_grad[0])
+        return g_x, g, None
+
+
+def _encoding_backward(ctx, grad_out, positions_need_grad: bool):
+    """(gradient of the positions or None, of the table or None) for HashEncodeCPU and HashReuseCPU."""
+    (x,) = ctx.saved_tensors
+    enc = ctx.enc
+    arrs = enc._kernel_arrays
+    grad_table = enc.grad_buffer()
+    grad_out = grad_out.contiguous()
+    # The positions' gradient reads the table as the forward did: before the table's own gradient is applied.
+    grad_x = positions_grad(x, grad_out, enc) if positions_need_grad else None
+    _hash_backward(x.detach().contiguous().numpy(), grad_out.numpy(), arrs.res, arrs.dense, arrs.size,
+                   arrs.off, grad_table.numpy(), enc.touched_rows())
+    # In fused-grad mode the gradient stays in the encoding's buffer for the lazy Adam.
+    return grad_x, (None if enc.fused_grad else grad_table)
 
 
 if backend.HAVE_NUMBA:

@@ -256,6 +256,11 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
     """Rays in rounds: march a few samples per live ray, evaluate them, retire the rays whose
     transmittance is spent, march on with the others."""
     n, dev = o.shape[0], o.device
+    # Rays that carry a gradient (camera pose refinement) are marched as data; the second pass below
+    # places the kept samples on them again, differentiably.
+    rays_grad = grad and (o.requires_grad or d.requires_grad)
+    o_rays, d_rays = o, d
+    o, d = o.detach(), d.detach()
     color, alpha, depth = o.new_zeros(n, 3), o.new_zeros(n), o.new_zeros(n)
     grids = _grids(model, occ, step, background=True)
     if n == 0 or not (occ.any() or grids.has_bg):
@@ -332,6 +337,9 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
         keep = None if keep is None else keep[order]
     # Second pass with autograd on the samples that can still be seen; the encoding of the first
     # pass is reused (only its backward runs) where the CPU kernels apply.
+    if rays_grad:  # the same samples, as functions of the rays: the positions get a gradient too
+        sdirs = d_rays[ray_idx]
+        xs = model.normalize(o_rays[ray_idx] + sdirs * t[:, None])
     inside = ((xs >= 0) & (xs <= 1)).all(dim=-1)
     sigma, geo = model.features_from_encoding(model.encoding.reuse(enc, xs), inside)
     if keep is not None:

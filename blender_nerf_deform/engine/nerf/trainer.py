@@ -77,6 +77,14 @@ class TrainOptions:
     # proportion to their recent loss, the rest uniformly (datasets with masks: all uniformly). Off: on fern
     # 0.5 was ahead at 1 and 3 min (+0.47, +0.32 dB val) and level at 10 (-0.03 val, +0.01 held-out).
     error_rays: float = 0.0
+    # Camera pose refinement (as instant-ngp and nerfacto do): each training photo's pose gets a small
+    # rotation about its centre and a translation, learned with the field at pose_lr (in radians, and in
+    # half-widths of the scene's inner box, per step at the peak) once pose_start of the budget has passed.
+    # Off: on the fox and fern (10 min, held-out photos) 1e-3 from the start cost 7 and 3 dB (a few rays
+    # per photo per step make the poses wander), 1e-4 from 0.3 was level within noise (BENCHMARKS.md, issue 28).
+    refine_poses: bool = False
+    pose_lr: float = 1e-4
+    pose_start: float = 0.3
 
 
 def distortion_loss(ray_idx: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, w: torch.Tensor, n_rays: int,
@@ -138,6 +146,13 @@ class Trainer:
             mlp_params += list(model.appearance.parameters())
         params = mlp_params if self.lazy_table else [enc.table] + mlp_params
         self.optimizer = torch.optim.Adam(params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15)
+        # Per photo: a rotation vector (radians, world axes, about the camera's centre) and a translation
+        # in units of pose_scale; zero is the photo's own pose.
+        self.pose_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
+        self.pose_delta = None
+        if self.opt.refine_poses:
+            self.pose_delta = torch.nn.Parameter(torch.zeros(n, 6, device=dev))
+            self.optimizer.add_param_group({"params": [self.pose_delta], "lr_scale": self.opt.pose_lr / self.opt.lr})
         if self.lazy_table:
             self.table_m = torch.zeros_like(enc.table.detach())
             self.table_v = torch.zeros_like(enc.table.detach())
@@ -217,8 +232,29 @@ class Trainer:
                 d_cam[sel] = camera_directions(fx[sel], fy[sel], cx[sel], cy[sel], i[sel], j[sel], lens)
         c2w = self.c2w[img]
         d = (c2w[:, :, :3] @ d_cam[:, :, None])[:, :, 0]
+        o = c2w[:, :, 3]
+        if self.poses_move():  # (before, every correction is still zero)
+            rot, shift = self.pose_corrections()
+            d = (rot[img] @ d[:, :, None])[:, :, 0]
+            o = o + shift[img]
         d = d / d.norm(dim=-1, keepdim=True)
-        return c2w[:, :, 3].contiguous(), d.contiguous(), self.pixels[idx], img
+        return o.contiguous(), d.contiguous(), self.pixels[idx], img
+
+    def poses_move(self) -> bool:
+        """Whether this step learns the photos' pose corrections (refine_poses, past pose_start)."""
+        return self.pose_delta is not None and self.progress_fraction() >= self.opt.pose_start
+
+    def pose_corrections(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each photo's learned correction: rotations (N, 3, 3) applied to its rays' directions and world
+        translations (N, 3) added to their origins (identity and zero without pose refinement)."""
+        if self.pose_delta is None:
+            return (torch.eye(3, device=self.device).expand(self.n_images, 3, 3),
+                    torch.zeros(self.n_images, 3, device=self.device))
+        w = self.pose_delta[:, :3]
+        zero = torch.zeros_like(w[:, 0])
+        skew = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero],
+                           dim=-1).reshape(-1, 3, 3)
+        return torch.linalg.matrix_exp(skew), self.pose_delta[:, 3:] * self.pose_scale
 
     def progress_fraction(self) -> float:
         p = 0.0
@@ -252,8 +288,13 @@ class Trainer:
 
     def _optimizer_step(self, lr: float) -> None:
         for g in self.optimizer.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr * g.get("lr_scale", 1.0)
         self.optimizer.step()
+        if self.poses_move():
+            # No common motion of all photos: it would move the scene away from photos that are not refined
+            # (held-out views, frames placed by the dataset's cameras).
+            with torch.no_grad():
+                self.pose_delta -= self.pose_delta.mean(dim=0)
         if self.lazy_table:
             enc = self.model.encoding
             t = self.step_count + 1
@@ -326,6 +367,8 @@ class Trainer:
              "optimizer": self.optimizer.state_dict()}
         if self.lazy_table:
             s["table_m"], s["table_v"] = self.table_m.clone(), self.table_v.clone()
+        if self.pose_delta is not None:
+            s["pose_delta"] = self.pose_delta.detach().clone()
         return s
 
     def load_state_dict(self, s: dict, where: str = "the trainer state") -> None:
@@ -341,6 +384,13 @@ class Trainer:
             self.optimizer.load_state_dict(s["optimizer"])
         except (ValueError, KeyError, TypeError, RuntimeError):
             pass  # a checkpoint from the other optimizer layout: restart the moments
+        deltas = s.get("pose_delta")
+        if self.pose_delta is not None and isinstance(deltas, torch.Tensor):
+            if deltas.shape != self.pose_delta.shape or not bool(torch.isfinite(deltas).all()):
+                raise EngineError(f"{where}: the pose corrections to resume have shape {tuple(deltas.shape)} or are "
+                                  f"not finite; this dataset's {self.n_images} photos need ({self.n_images}, 6)")
+            with torch.no_grad():
+                self.pose_delta.copy_(deltas)
         if self.lazy_table and "table_m" in s:
             m, v = s["table_m"], s.get("table_v")
             if (isinstance(m, torch.Tensor) and isinstance(v, torch.Tensor) and m.shape == v.shape == self.table_m.shape
