@@ -152,7 +152,8 @@ class Trainer:
         self.pose_delta = None
         if self.opt.refine_poses:
             self.pose_delta = torch.nn.Parameter(torch.zeros(n, 6, device=dev))
-            self.optimizer.add_param_group({"params": [self.pose_delta], "lr_scale": self.opt.pose_lr / self.opt.lr})
+            scale = self.opt.pose_lr / self.opt.lr if self.opt.lr else 0.0  # follows the field's warm-up and decay
+            self.optimizer.add_param_group({"params": [self.pose_delta], "lr_scale": scale})
         if self.lazy_table:
             self.table_m = torch.zeros_like(enc.table.detach())
             self.table_v = torch.zeros_like(enc.table.detach())
