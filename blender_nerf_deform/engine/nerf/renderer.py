@@ -257,8 +257,9 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
     transmittance is spent, march on with the others."""
     n, dev = o.shape[0], o.device
     # Rays that carry a gradient (camera pose refinement) are marched as data; the second pass below
-    # places the kept samples on them again, differentiably.
-    rays_grad = grad and (o.requires_grad or d.requires_grad)
+    # places the kept samples on them again, differentiably (unbent samples only: a bent one is not a
+    # function of its ray alone).
+    rays_grad = grad and sample_transform is None and (o.requires_grad or d.requires_grad)
     o_rays, d_rays = o, d
     o, d = o.detach(), d.detach()
     color, alpha, depth = o.new_zeros(n, 3), o.new_zeros(n), o.new_zeros(n)
