@@ -264,7 +264,7 @@ def test_pose_refinement_s_gradient_turns_a_wrong_pose_back_and_resumes(tmp_path
     c2w = np.array(train.cameras[k].c2w, dtype=np.float64)
     c2w[:3, :3] = wrong @ c2w[:3, :3]
     train.cameras[k] = dataclasses.replace(train.cameras[k], c2w=c2w)
-    opts = TrainOptions(steps=10, refine_poses=True, pixel_jitter=False, random_background=False)
+    opts = TrainOptions(steps=10, refine_poses=True, pose_start=0.0, pixel_jitter=False, random_background=False)
     trainer = Trainer(model, train, opts)
     pixels = torch.arange(k * 64 * 64, (k + 1) * 64 * 64)
     o, d, target, _ = trainer.sample_rays(pixels.numel(), pixels)
