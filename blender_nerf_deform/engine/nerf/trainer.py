@@ -81,7 +81,8 @@ class TrainOptions:
     # rotation about its centre and a translation, learned with the field at pose_lr (in radians, and in
     # half-widths of the scene's inner box, per step at the peak) once pose_start of the budget has passed.
     # Off: on the fox and fern (10 min, held-out photos) 1e-3 from the start cost 7 and 3 dB (a few rays
-    # per photo per step make the poses wander), 1e-4 from 0.3 was level within noise (BENCHMARKS.md, issue 28).
+    # per photo per step make the poses wander); 1e-4 from 0.3 was level on the fox and 0.2 dB behind on
+    # fern (BENCHMARKS.md, issue 28).
     refine_poses: bool = False
     pose_lr: float = 1e-4
     pose_start: float = 0.3
