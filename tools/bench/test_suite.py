@@ -4,7 +4,7 @@
         [--make-args "TEST_WORKERS=0"] [--log suite.log]
 
 Runs `make test PYTEST_ARGS=--durations=15` in the checkout (a fresh clone measures what CI pays:
-the .venv set-up, numba's kernel compiles, every fixture), with a `sitecustomize` on PYTHONPATH that
+the .venv set-up, numba's kernel compiles, every fixture) and the CPU time its processes used, with a `sitecustomize` on PYTHONPATH that
 appends one line per Python process to a log when it exits: what it imported (bpy: a Blender; torch:
 a worker, an engine command or a test process) and its command line. Prints the wall time, pytest's
 15 slowest tests and the processes by role. Processes that die by a signal or `os._exit` write no
@@ -17,6 +17,7 @@ import argparse
 import collections
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -70,11 +71,16 @@ def main(argv=None) -> int:
         proc = subprocess.run(["make", "test", "PYTEST_ARGS=--durations=15", *args.make_args.split()],
                               cwd=args.checkout, env=env, stdout=out, stderr=subprocess.STDOUT)
     wall = time.perf_counter() - started
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)  # every process make waited for, and theirs
+    cpu = usage.ru_utime + usage.ru_stime
     text = log.read_text(errors="replace")
 
     summary = [line for line in text.splitlines() if re.search(r"\d+ (passed|failed)", line)]
     print(f"make test: exit {proc.returncode}, wall {wall:.0f} s ({wall / 60:.1f} min); "
           f"{summary[-1].strip('= ') if summary else 'no pytest summary'}")
+    # Processes nobody waited for (killed, orphaned) are not counted: a floor, as the counts below.
+    print(f"CPU (user + system) of the run's processes: {cpu / 60:.1f} min, {100 * cpu / (wall * os.cpu_count()):.0f} % "
+          f"of the machine's {os.cpu_count()} cores over the wall time")
     durations = text.split("slowest 15 durations", 1)[-1].splitlines()[1:17] if "slowest 15 durations" in text else []
     print("slowest 15:")
     for line in durations:

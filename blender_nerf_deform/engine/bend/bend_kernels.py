@@ -16,7 +16,7 @@ from .. import backend
 DENSITY_SCALE_SNAP = 1e-5
 
 if backend.HAVE_NUMBA:
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
     @njit(parallel=True, cache=True)
     def map_samples(P, D, tet, located, linear, offset, rotation, rotate, occ, olo, oext, ores, out_p, out_d, keep,

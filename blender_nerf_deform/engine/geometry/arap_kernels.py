@@ -18,7 +18,7 @@ _E0 = TET_EDGES[:, 0].copy()  # module constants, frozen into the kernels
 _E1 = TET_EDGES[:, 1].copy()
 
 if backend.HAVE_NUMBA:  # without numba ARAP runs libigl's solver
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
 
 if backend.HAVE_NUMBA:

@@ -28,7 +28,7 @@ from .. import backend
 
 if backend.HAVE_NUMBA:
     import numba
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
 
 if backend.HAVE_NUMBA:

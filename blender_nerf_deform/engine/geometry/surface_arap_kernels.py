@@ -17,7 +17,7 @@ from .. import backend
 from .arap_kernels import _E0, _E1
 
 if backend.HAVE_NUMBA:
-    from numba import njit
+    from ..kernel_cache import njit
 
     from .arap_kernels import _horn_matrix, _jacobi_top_eigenvector, _quaternion_rotation
 

@@ -13,7 +13,7 @@ import numpy as np
 from .. import backend
 
 if backend.HAVE_NUMBA:
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
     @njit(parallel=True, cache=True, fastmath=True)
     def sparse_adam(param, grad, m, v, touched, lr, b1, b2, eps, bc1, bc2):

@@ -23,7 +23,7 @@ from .. import backend
 FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # NaN and inf keep their meaning
 
 if backend.HAVE_NUMBA:
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
     @njit(cache=True, fastmath=FAST)
     def _exclusive_transmittance(tau, ray_idx, out):

@@ -21,7 +21,7 @@ import torch
 from .. import backend
 
 if backend.HAVE_NUMBA:
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
 
 # fastmath without its no-NaN / no-inf assumptions: with them LLVM may drop the NaN test of

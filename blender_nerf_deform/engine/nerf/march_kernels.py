@@ -89,7 +89,7 @@ def coarse_mask(mask: torch.Tensor, res: int) -> tuple[torch.Tensor, int]:
 
 
 if backend.HAVE_NUMBA:
-    from numba import njit, prange
+    from ..kernel_cache import njit, prange
 
     @njit(inline="always", fastmath=FAST)
     def _inner_occupied(px, py, pz, lo, scale, r, mask):
