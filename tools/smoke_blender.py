@@ -465,6 +465,9 @@ def main(argv: list[str] | None = None) -> int:
     worker = str(Path(args.worker_python).absolute())
     env = {k: v for k, v in os.environ.items() if not k.startswith("BLENDER_") and k not in ("PYTHONPATH", "PYTHONHOME")}
     env["NERF_DEFORM_PYTHON"] = worker
+    # One numba kernel cache for the run: the workers of every release (the same worker Python, each with
+    # its own installed copy of the engine) load the kernels the first one compiled (engine/kernel_cache.py).
+    env.setdefault("NUMBA_CACHE_DIR", str(root / "numba_cache"))
     started = time.monotonic()
     if args.zip is None:
         sys.path.insert(0, str(REPO))
