@@ -1,19 +1,20 @@
-"""numba's cache of the engine's kernels: one entry for every copy of the same engine, stale once any
-kernel file changes. The kernel modules (`*_kernels.py`) take `njit` and `prange` from here.
+"""numba's cache of the engine's kernels: one entry for every copy of the same engine, stale once a
+kernel file of its stage changes. The kernel modules (`*_kernels.py`) take `njit` and `prange` from here.
 
 numba (0.68) files a cached kernel under a hash of its source folder's path and stamps it with the
 content of that one file. Two things follow that the engine does not want:
 
-- every copy of the engine compiles the same kernels again (~25 s on 2 cores): the repository's
-  command line, the extension installed in each Blender's user folder, a test's copy. `make demo`'s
-  render stage (the installed extension's worker) compiled what its training had just compiled;
+- every copy of the engine compiles the same kernels again (`compile` from nothing: 26-53 s on 2
+  cores): the repository's command line, the extension installed in each Blender's user folder, a
+  test's copy. `make smoke`'s five releases each compiled them; `make demo`'s worker compiled the frame
+  kernels its training had just compiled;
 - surface_arap_kernels.py inlines functions of arap_kernels.py: a change to arap_kernels.py alone left
   the other's cached kernels in use.
 
 The locators here stamp every kernel with one digest of all the kernel files of its stage (the
 folder: nerf, geometry, bend; a kernel module imports no other engine module but the kernel modules
 beside it, kernel_cache and backend; test_kernel_cache.py checks it) and, with
-NUMBA_CACHE_DIR set (the worker's user folder, the test suite, the demo), file it under
+NUMBA_CACHE_DIR set (the worker's user folder, the test suite, the demo, the smoke), file it under
 NUMBA_CACHE_DIR/<the kernel's package>, e.g. `blender_nerf_deform.engine.nerf`: the same folder for
 every copy with that package name. The package name is part of the place because a cached kernel
 imports its module by name when it loads. Without NUMBA_CACHE_DIR, kernels stay next to their source
@@ -29,8 +30,10 @@ import hashlib
 import os
 from pathlib import Path
 
-from numba import njit, prange  # noqa: F401  (re-exported: the kernels' decorator and parallel loop)
+from numba import njit, prange
 from numba.core import caching, config
+
+__all__ = ["njit", "prange"]  # the kernels' decorator and parallel loop, with the locators installed
 
 ENGINE_ROOT = Path(__file__).resolve().parent
 KERNEL_SUFFIX = "_kernels.py"
