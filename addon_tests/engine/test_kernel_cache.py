@@ -26,7 +26,12 @@ sparse_adam(z.copy(), z.copy(), z.copy(), z.copy(), np.ones(4, np.uint8), 1e-2, 
 
 
 def _run_adam(cwd, cache):
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), NUMBA_DEBUG_CACHE="1")
+    """Run the kernel in a fresh process in `cwd` with numba's cache in `cache` (None: beside the source)."""
+    env = dict(os.environ, NUMBA_DEBUG_CACHE="1")
+    if cache is None:
+        env.pop("NUMBA_CACHE_DIR", None)
+    else:
+        env["NUMBA_CACHE_DIR"] = str(cache)
     env.pop("PYTHONPATH", None)  # the package is found in cwd: the copy there, not the repository
     proc = subprocess.run([sys.executable, "-c", _RUN_ADAM], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=300)
@@ -53,6 +58,11 @@ def test_every_kernel_module_is_a_kernel_file_that_imports_only_its_stage():
                             f"{path.name} imports {'.' * node.level}{name}"
 
 
+def _copy_engine(to):
+    shutil.copytree(REPO / "blender_nerf_deform", to / "blender_nerf_deform", ignore=shutil.ignore_patterns("__pycache__"))
+    return to / "blender_nerf_deform" / "engine"
+
+
 def test_a_copy_of_the_engine_reads_the_kernels_another_copy_compiled_until_its_stage_changes(tmp_path):
     cache = tmp_path / "cache"
     first = _run_adam(REPO, cache)
@@ -61,16 +71,26 @@ def test_a_copy_of_the_engine_reads_the_kernels_another_copy_compiled_until_its_
     assert (cache / "blender_nerf_deform.engine.nerf").is_dir()
 
     copy = tmp_path / "copy"
-    shutil.copytree(REPO / "blender_nerf_deform", copy / "blender_nerf_deform",
-                    ignore=shutil.ignore_patterns("__pycache__"))
+    engine = _copy_engine(copy)
     second = _run_adam(copy, cache)
     assert "data loaded" in second and "data saved" not in second, second[-2000:]
 
     # Another kernel file of the stage changes (not the one run): the kernel is compiled again.
-    with open(copy / "blender_nerf_deform" / "engine" / "nerf" / "march_kernels.py", "a") as f:
+    with open(engine / "nerf" / "march_kernels.py", "a") as f:
         f.write("\n# changed\n")
     third = _run_adam(copy, cache)
     assert "data saved" in third, third[-2000:]
+
+
+def test_without_a_cache_folder_kernels_stay_beside_their_source_and_follow_their_stage(tmp_path):
+    engine = _copy_engine(tmp_path)
+    assert "data saved" in _run_adam(tmp_path, None)
+    assert list((engine / "nerf" / "__pycache__").glob("adam_kernels.sparse_adam-*.nbi"))
+    again = _run_adam(tmp_path, None)
+    assert "data loaded" in again and "data saved" not in again, again[-2000:]
+    with open(engine / "nerf" / "march_kernels.py", "a") as f:  # numba's own stamp would not see this
+        f.write("\n# changed\n")
+    assert "data saved" in _run_adam(tmp_path, None)
 
 
 def test_a_stage_s_digest_follows_its_kernel_files_only(tmp_path):

@@ -58,35 +58,30 @@ def _is_kernel_file(py_file: str) -> bool:
     return path.name.endswith(KERNEL_SUFFIX) and ENGINE_ROOT in path.parents
 
 
-class SharedKernelLocator(caching.UserProvidedCacheLocator):
-    """A kernel under NUMBA_CACHE_DIR/<its package>, stamped with its stage's digest."""
+class _KernelFiles:
+    """Locator mixin: the engine's kernel files only, each stamped with its stage's digest."""
+
+    def get_source_stamp(self):
+        return kernels_digest(Path(self._py_file).resolve().parent)
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if not _is_kernel_file(py_file):
+            return None
+        return super().from_function(py_func, py_file)  # numba's: None where it cannot write
+
+
+class SharedKernelLocator(_KernelFiles, caching.UserProvidedCacheLocator):
+    """A kernel under NUMBA_CACHE_DIR/<its package> (none without NUMBA_CACHE_DIR)."""
 
     def __init__(self, py_func, py_file):
         super().__init__(py_func, py_file)
         package = py_func.__module__.rpartition(".")[0] or "engine"
         self._cache_path = os.path.join(config.CACHE_DIR, package)
 
-    def get_source_stamp(self):
-        return kernels_digest(Path(self._py_file).resolve().parent)
 
-    @classmethod
-    def from_function(cls, py_func, py_file):
-        if not _is_kernel_file(py_file):
-            return None
-        return super().from_function(py_func, py_file)  # None without NUMBA_CACHE_DIR or if not writable
-
-
-class InTreeKernelLocator(caching.InTreeCacheLocator):
-    """A kernel next to its source (numba's place without NUMBA_CACHE_DIR), stamped with the digest."""
-
-    def get_source_stamp(self):
-        return kernels_digest(Path(self._py_file).resolve().parent)
-
-    @classmethod
-    def from_function(cls, py_func, py_file):
-        if not _is_kernel_file(py_file):
-            return None
-        return super().from_function(py_func, py_file)
+class InTreeKernelLocator(_KernelFiles, caching.InTreeCacheLocator):
+    """A kernel next to its source, numba's place without NUMBA_CACHE_DIR."""
 
 
 def install() -> None:
