@@ -4,10 +4,10 @@
         [--make-args "TEST_WORKERS=0"] [--log suite.log]
 
 Runs `make test PYTEST_ARGS=--durations=15` in the checkout (a fresh clone measures what CI pays:
-the .venv set-up, numba's kernel compiles, every fixture) and the CPU time its processes used, with a `sitecustomize` on PYTHONPATH that
+the .venv set-up, numba's kernel compiles, every fixture), with a `sitecustomize` on PYTHONPATH that
 appends one line per Python process to a log when it exits: what it imported (bpy: a Blender; torch:
-a worker, an engine command or a test process) and its command line. Prints the wall time, pytest's
-15 slowest tests and the processes by role. Processes that die by a signal or `os._exit` write no
+a worker, an engine command or a test process) and its command line. Prints the wall time, the CPU
+time of the run's processes, pytest's 15 slowest tests and the processes by role. Processes that die by a signal or `os._exit` write no
 line, so the counts are a floor.
 """
 
