@@ -7,8 +7,8 @@ Runs `make test PYTEST_ARGS=--durations=15` in the checkout (a fresh clone measu
 the .venv set-up, numba's kernel compiles, every fixture), with a `sitecustomize` on PYTHONPATH that
 appends one line per Python process to a log when it exits: what it imported (bpy: a Blender; torch:
 a worker, an engine command or a test process) and its command line. Prints the wall time, the CPU
-time of the run's processes, pytest's 15 slowest tests and the processes by role. Processes that die by a signal or `os._exit` write no
-line, so the counts are a floor.
+time of the run's processes, pytest's 15 slowest tests and the processes by role. Processes that
+die by a signal or `os._exit` write no line, so the counts are a floor.
 """
 
 from __future__ import annotations
