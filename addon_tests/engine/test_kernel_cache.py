@@ -9,12 +9,8 @@ import shutil
 import subprocess
 import sys
 
-import pytest
-
 from blender_nerf_deform.engine import kernel_cache
 from fixtures import REPO
-
-pytestmark = pytest.mark.skipif(not kernel_cache.kernel_files(), reason="no kernel files")
 
 # One cheap kernel (no torch): the lazy Adam, run on a 4x2 table.
 _RUN_ADAM = """
