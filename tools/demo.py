@@ -254,9 +254,10 @@ def main(argv=None) -> int:
         raise SystemExit(f"demo: --out {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     user = out / "blender_user"
-    # One numba kernel cache for every process of the demo: the installed extension's worker loads the
-    # kernels that the command line's training compiled instead of compiling them again (~25 s; the cache
-    # is shared by copies of the same engine, engine/kernel_cache.py). The test suite uses the same folder.
+    # One numba kernel cache for every process of the demo (copies of the same engine share it,
+    # engine/kernel_cache.py): the installed extension's worker loads the frame kernels the training
+    # compiled (a few seconds; it still compiles the bending and point-location kernels once), and all of
+    # them stay for the next demo. The test suite uses the same folder.
     os.environ.setdefault("NUMBA_CACHE_DIR", str(REPO / "build" / "numba_cache"))
     started = time.monotonic()
     stage = Stage(7)
