@@ -1,6 +1,7 @@
 """`prepare`: photos with no poses → cameras by structure from motion (pycolmap), oriented and written."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -10,6 +11,11 @@ from PIL import Image
 
 from fixtures import REPO
 from fixtures.sfm_scene import write_corner_photos
+
+
+def _colmap_info_lines(stderr: str) -> list[str]:
+    """COLMAP's (glog's) INFO lines: `I20261207 07:12:35.386056 ...`."""
+    return [line for line in stderr.splitlines() if re.match(r"I\d{8} \d\d:\d\d:\d\d", line)]
 
 
 def _cli(*args):
@@ -37,6 +43,7 @@ def test_prepare_recovers_the_cameras_of_photos_up_to_a_similarity(tmp_path):
     proc = _cli("prepare", "--images", tmp_path / "photos", "--out", tmp_path / "data")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "14 of 14 photos registered" in proc.stdout
+    assert not _colmap_info_lines(proc.stderr), proc.stderr[-2000:]  # COLMAP's chatter stays out of the way
     meta = json.loads((tmp_path / "data" / "transforms.json").read_text())
     assert meta["camera_model"] == "OPENCV" and meta["w"] == 320 and meta["h"] == 240
     assert meta["fl_x"] == pytest.approx(260.0, rel=0.01) and meta["cx"] == pytest.approx(160.0, abs=2.0)
@@ -66,6 +73,10 @@ def test_prepare_with_too_few_or_unmatchable_photos_says_so_and_writes_nothing(t
     proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data")
     assert proc.returncode == 2 and "structure from motion registered" in proc.stderr, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
+    assert not _colmap_info_lines(proc.stderr), proc.stderr[-2000:]  # COLMAP's warnings only, then the error
+    proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data", "--colmap-log")  # all of COLMAP's log, asked for
+    assert proc.returncode == 2 and "structure from motion registered" in proc.stderr
+    assert len(_colmap_info_lines(proc.stderr)) > 10, proc.stderr[-2000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no dataset, no work folder left
 
 

@@ -158,6 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="exhaustive (any order; default) or sequential (video frames, many photos)")
     p.add_argument("--max-size", type=int, default=1600, metavar="PX", help="longest side for feature extraction (default 1600)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of COLMAP's random choices (default 0)")
+    p.add_argument("--colmap-log", action="store_true",
+                   help="print COLMAP's whole log (every photo, match and adjustment); by default its warnings only")
     p.set_defaults(handler=_command("prepare"))
 
     p = sub.add_parser("compile", help="compile the CPU kernels once, so the first train or render on this machine "

@@ -13,6 +13,10 @@ oriented by `orient.py` and written, with the photos it registered, into a
 temporary folder beside the destination that is renamed at the end: a failed or
 interrupted run leaves nothing under DATASET_DIR (nor the parent folders it made).
 
+COLMAP logs every photo, match and bundle adjustment to stderr (hundreds of lines for a real
+capture); `prepare` lets through its warnings and errors only unless `colmap_log` asks for all
+of it (`--colmap-log`): the stage lines above say where the run is.
+
 Progress and cancelling (the worker's `prepare` op, Blender's Import Photos):
 `progress(fraction, message)` is called as each stage starts and as the mapping
 registers each photo; it may raise to stop the run between stages. `should_stop()`
@@ -114,11 +118,11 @@ def transforms_for(cameras: list[dict], image_folder: str = "images") -> dict:
 
 def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "exhaustive", max_size: int = 1600,
             seed: int = 0, log=print, progress: Callable[[float, str], None] | None = None,
-            should_stop: Callable[[], bool] | None = None) -> dict:
+            should_stop: Callable[[], bool] | None = None, colmap_log: bool = False) -> dict:
     """Run structure from motion on the photos in `images`, write `out`/transforms.json + `out`/images/.
 
     Returns a summary: registered and unregistered photos, timings, the camera model found.
-    `progress` and `should_stop`: the module docstring.
+    `progress`, `should_stop` and `colmap_log`: the module docstring.
     """
     import pycolmap
 
@@ -153,6 +157,8 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
             except Exception:
                 pass  # a cancel: the token stops the mapper
 
+    log_level = pycolmap.logging.minloglevel  # glog's, process-wide: restored below
+    pycolmap.logging.minloglevel = int(pycolmap.logging.INFO if colmap_log else pycolmap.logging.WARNING)
     try:
         database = work / "colmap" / "database.db"
         database.parent.mkdir()
@@ -222,3 +228,5 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
             except OSError:
                 break
         raise
+    finally:
+        pycolmap.logging.minloglevel = log_level
