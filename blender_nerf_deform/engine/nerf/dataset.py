@@ -54,13 +54,13 @@ regions live), the same as `aabb` unless said below. In this order:
    defaults scale 0.33, offset 0.5), and its scene is the cube of side aabb_scale (a power
    of two, 1 to 128) about q = (0.5, 0.5, 0.5). `inner_aabb` is the unit cube [0, 1]^3
    mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), grown to hold the box of
-   rule 4 taken with the wider field of view (what the cameras frame; the fox's head lies
-   outside the unit cube) within the scene cube, `aabb` the scene cube;
+   rule 4 (what the cameras frame; the fox's head lies outside the unit cube) within the
+   scene cube, `aabb` the scene cube;
 3. NeRF-synthetic form (`camera_angle_x`): [-1.5, 1.5]^3, as docs/ARCHITECTURE.md's Conventions state;
-4. otherwise derived from the cameras: centred on the point closest (least
-   squares) to all optical axes, half-width = mean camera distance to that
-   point x tan(half the narrower field of view): the largest centred object
-   that every camera sees whole.
+4. otherwise derived from the cameras (prepare's output, nerfstudio, COLMAP models):
+   centred on the point closest (least squares) to all optical axes, half-width =
+   mean camera distance to that point x tan(half the wider field of view), at most
+   that distance: what the cameras frame along their images' longer side.
 
 `min_sharpness_quantile=q` (0 keeps all) drops the blurriest fraction q of the frames (by
 their `sharpness` when every frame has one, else by the variance of the Laplacian of the
@@ -162,12 +162,12 @@ def _transforms_boxes(meta: dict, where: str):
 
 def _grown_to_the_view(inner: np.ndarray, scene: np.ndarray, cameras: list) -> np.ndarray:
     """instant-ngp's unit cube grown to hold what the cameras frame: a centred box as wide as the
-    mean camera's view along its image's longer side at the point the optical axes meet (rule 4
-    with the wider field of view), within the scene cube. instant-ngp models its whole scene
-    cube, so a capture may put its object partly outside the unit cube (the fox's nose reaches
-    2.5 from the centre, the cube 1.515, rule 4's box 2.0); the inner box is where extraction,
+    mean camera's view along its image's longer side at the point the optical axes meet (rule 4),
+    within the scene cube. instant-ngp models its whole scene cube, so a capture may put its
+    object partly outside the unit cube (the fox's nose reaches 2.5 from the centre, the cube
+    1.515, rule 4's box 3.6); the inner box is where extraction,
     cages and regions work, so it must hold the object. An `aabb` in the json overrides all this."""
-    seen = derive_aabb(cameras, wider=True)
+    seen = derive_aabb(cameras)
     grown = np.stack([np.minimum(inner[0], seen[0]), np.maximum(inner[1], seen[1])])
     return np.clip(grown, scene[0], scene[1]).astype(np.float32)
 
