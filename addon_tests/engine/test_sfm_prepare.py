@@ -74,6 +74,7 @@ def test_prepare_with_too_few_or_unmatchable_photos_says_so_and_writes_nothing(t
     assert proc.returncode == 2 and "structure from motion registered" in proc.stderr, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
     assert not _colmap_info_lines(proc.stderr), proc.stderr[-2000:]  # COLMAP's warnings only, then the error
+    assert "the photos are small (160x120): if you have them at full size, use those" in proc.stderr
     proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data", "--colmap-log")  # all of COLMAP's log, asked for
     assert proc.returncode == 2 and "structure from motion registered" in proc.stderr
     assert len(_colmap_info_lines(proc.stderr)) > 10, proc.stderr[-2000:]

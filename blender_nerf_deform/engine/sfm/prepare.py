@@ -48,6 +48,8 @@ MATCHERS = ("exhaustive", "sequential")
 # Where each stage starts in the progress fraction (14 photos of 320x240 on 2 cores: features 0.9 s,
 # matching 1.1 s, mapping 2.2 s).
 STAGE_START = {"features": 0.0, "matching": 0.2, "mapping": 0.45, "writing": 0.95}
+# A failed run whose photos' longest side is below this says they are small (_small_photos_hint).
+SMALL_PHOTO_PX = 1000
 
 
 class PrepareCancelled(Exception):
@@ -89,6 +91,27 @@ def photos_in(folder: Path) -> list[str]:
     if len(names) < 3:
         raise EngineError(f"--images {folder}: {len(names)} photos (.jpg/.png) found; structure from motion needs at least 3")
     return names
+
+
+def _small_photos_hint(folder: Path, names: list[str]) -> str:
+    """What a failed run's error adds when its photos are small: SIFT finds a few hundred features in
+    a 200-px photo (a renderer's output, a dataset's downscaled copies), often too few to match
+    (80 renders of a textured room at 200 px, 23 degrees apart: 2 registered)."""
+    from PIL import Image
+
+    sizes = []
+    for name in names:
+        try:
+            with Image.open(folder / name) as im:
+                sizes.append(im.size)
+        except Exception:
+            continue  # COLMAP has said what it could not read
+    if not sizes:
+        return ""
+    w, h = sorted(sizes, key=max)[len(sizes) // 2]
+    if max(w, h) >= SMALL_PHOTO_PX:
+        return ""
+    return f"; the photos are small ({w}x{h}): if you have them at full size, use those"
 
 
 def _place(src: Path, dst: Path) -> None:
@@ -189,14 +212,16 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         timings["mapping_s"] = time.perf_counter() - t0
         if not maps:
             raise EngineError(f"structure from motion registered none of the {len(names)} photos in {src}: COLMAP found no "
-                              "initial pair with enough matches (photos too different, too little texture or overlap)")
+                              "initial pair with enough matches (photos too different, too little texture or overlap)"
+                              + _small_photos_hint(src, names))
         reconstruction = max(maps.values(), key=lambda r: r.num_reg_images())
         cameras = reconstruction_cameras(reconstruction)
         registered = {c["name"] for c in cameras}
         missing = [n for n in names if n not in registered]
         if len(cameras) < 3:
             raise EngineError(f"structure from motion registered only {len(cameras)} of {len(names)} photos in {src} "
-                              f"({len(maps)} separate reconstruction(s)); take more overlapping photos")
+                              f"({len(maps)} separate reconstruction(s)); take more overlapping photos"
+                              + _small_photos_hint(src, names))
         if missing:
             log(f"prepare: {len(missing)} of {len(names)} photos not registered, left out: {', '.join(missing[:10])}"
                 + (" ..." if len(missing) > 10 else ""))
