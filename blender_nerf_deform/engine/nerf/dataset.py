@@ -53,14 +53,14 @@ regions live), the same as `aabb` unless said below. In this order:
    nerf_position_to_ngp: the offset is added in the json's axis order, before the cycle;
    defaults scale 0.33, offset 0.5), and its scene is the cube of side aabb_scale (a power
    of two, 1 to 128) about q = (0.5, 0.5, 0.5). `inner_aabb` is the unit cube [0, 1]^3
-   mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), grown to hold the box of
-   rule 4 (what the cameras frame; the fox's head lies outside the unit cube) within the
+   mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), grown to hold the box the
+   cameras frame (frames.framed_box; the fox's head lies outside the unit cube) within the
    scene cube, `aabb` the scene cube;
 3. NeRF-synthetic form (`camera_angle_x`): [-1.5, 1.5]^3, as docs/ARCHITECTURE.md's Conventions state;
 4. otherwise derived from the cameras (prepare's output, nerfstudio, COLMAP models):
    centred on the point closest (least squares) to all optical axes, half-width =
-   mean camera distance to that point x tan(half the wider field of view), at most
-   that distance: what the cameras frame along their images' longer side.
+   the mean camera distance to that point, so the cameras stand on or inside it
+   (frames.derive_aabb says why not smaller).
 
 `min_sharpness_quantile=q` (0 keeps all) drops the blurriest fraction q of the frames (by
 their `sharpness` when every frame has one, else by the variance of the Laplacian of the
@@ -80,7 +80,7 @@ import numpy as np
 from ..errors import EngineError
 from .frames import (FORMAT_LABELS, FrameSource, NerfDataset, downscale_image, downscale_mask, find_image, frame_name, image_size,
                      laplacian_sharpness, lens_of, load_image, load_mask, number, pixels, camera_from_keys,
-                     check_c2w, derive_aabb, scaled_camera)
+                     check_c2w, derive_aabb, framed_box, scaled_camera)
 
 __all__ = ["FORMAT_LABELS", "NerfDataset", "load_dataset"]
 
@@ -162,12 +162,12 @@ def _transforms_boxes(meta: dict, where: str):
 
 def _grown_to_the_view(inner: np.ndarray, scene: np.ndarray, cameras: list) -> np.ndarray:
     """instant-ngp's unit cube grown to hold what the cameras frame: a centred box as wide as the
-    mean camera's view along its image's longer side at the point the optical axes meet (rule 4),
-    within the scene cube. instant-ngp models its whole scene cube, so a capture may put its
-    object partly outside the unit cube (the fox's nose reaches 2.5 from the centre, the cube
-    1.515, rule 4's box 3.6); the inner box is where extraction,
+    mean camera's view along its image's longer side at the point the optical axes meet, within
+    the scene cube. instant-ngp models its whole scene cube, so a capture may put its object
+    partly outside the unit cube (the fox's nose reaches 2.5 from the centre, the cube 1.515,
+    the framed box 3.6); the inner box is where extraction,
     cages and regions work, so it must hold the object. An `aabb` in the json overrides all this."""
-    seen = derive_aabb(cameras)
+    seen = framed_box(cameras)
     grown = np.stack([np.minimum(inner[0], seen[0]), np.maximum(inner[1], seen[1])])
     return np.clip(grown, scene[0], scene[1]).astype(np.float32)
 
