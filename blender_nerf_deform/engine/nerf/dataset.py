@@ -165,8 +165,8 @@ def _grown_to_the_view(inner: np.ndarray, scene: np.ndarray, cameras: list) -> n
     mean camera's view along its image's longer side at the point the optical axes meet, within
     the scene cube. instant-ngp models its whole scene cube, so a capture may put its object
     partly outside the unit cube (the fox's nose reaches 2.5 from the centre, the cube 1.515,
-    the framed box 3.6); the inner box is where extraction,
-    cages and regions work, so it must hold the object. An `aabb` in the json overrides all this."""
+    the framed box 3.6); the inner box is where extraction, cages and regions work, so it must
+    hold the object. An `aabb` in the json overrides all this."""
     seen = framed_box(cameras)
     grown = np.stack([np.minimum(inner[0], seen[0]), np.maximum(inner[1], seen[1])])
     return np.clip(grown, scene[0], scene[1]).astype(np.float32)
