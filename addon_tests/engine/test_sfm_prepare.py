@@ -14,8 +14,8 @@ from fixtures.sfm_scene import write_corner_photos
 
 
 def _colmap_info_lines(stderr: str) -> list[str]:
-    """COLMAP's (glog's) INFO lines: `I20261207 07:12:35.386056 ...`."""
-    return [line for line in stderr.splitlines() if re.match(r"I\d{8} \d\d:\d\d:\d\d", line)]
+    """COLMAP's (glog's) INFO lines: `I20261207 07:12:35.386056 ...` (older glogs leave out the year)."""
+    return [line for line in stderr.splitlines() if re.match(r"I(\d{4})?\d{4} \d\d:\d\d:\d\d", line)]
 
 
 def _cli(*args):
