@@ -243,9 +243,10 @@ def test_occupancy_updates_cost_an_unbounded_model_what_they_cost_a_bounded_one(
 def test_pose_refinement_s_gradient_turns_a_wrong_pose_back_and_resumes(tmp_path):
     """A room NeRF trained on true poses; one photo then given a pose 3 degrees off. The gradient of that
     photo's error in its pose correction (through the rays, the reused encoding's position gradient and
-    the contraction) points back towards the true pose, and followed downhill it undoes more than half of
-    the error; the corrections round-trip through the trainer state; before `pose_start` the poses stay
-    as given."""
+    the contraction) points back towards the true pose, and followed downhill it undoes at least a third
+    of the error (the 500-step NeRF's error is lowest 0.7-1.6 degrees from the true pose: the trainer's
+    threads make each run's NeRF a little different; a missing or reversed gradient leaves 3 or more);
+    the corrections round-trip through the trainer state; before `pose_start` the poses stay as given."""
     import dataclasses
 
     from scipy.spatial.transform import Rotation
@@ -283,7 +284,7 @@ def test_pose_refinement_s_gradient_turns_a_wrong_pose_back_and_resumes(tmp_path
         steps.step()
     rot, _ = trainer.pose_corrections()
     residual = np.rad2deg(Rotation.from_matrix(rot[k].detach().double().numpy() @ wrong).magnitude())
-    assert residual < 1.5, residual
+    assert residual < 2.0, residual
     # The corrections are part of the trainer state; a state for another number of photos is refused.
     with torch.no_grad():
         trainer.pose_delta.zero_()
