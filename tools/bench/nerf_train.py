@@ -84,6 +84,8 @@ def main() -> int:
     ap.add_argument("--save", help="write the final checkpoint here")
     ap.add_argument("--log2-table", type=int, default=None)
     ap.add_argument("--finest", type=int, default=None)
+    ap.add_argument("--levels", type=int, default=None, help="hash grid levels (default: NerfConfig's)")
+    ap.add_argument("--features", type=int, default=None, help="features per level (default: NerfConfig's)")
     ap.add_argument("--color-layers", type=int, default=None, help="hidden layers of the colour MLP (default: NerfConfig's)")
     ap.add_argument("--occ-res", type=int, default=None)
     ap.add_argument("--target-samples", type=int, default=None)
@@ -135,6 +137,10 @@ def main() -> int:
         cfg.log2_table_size = args.log2_table
     if args.finest:
         cfg.finest_resolution = args.finest
+    if args.levels:
+        cfg.n_levels = args.levels
+    if args.features:
+        cfg.n_features = args.features
     if args.color_layers is not None:  # 0 is a valid colour head (no hidden layer)
         cfg.color_layers = args.color_layers
     if args.occ_res:
