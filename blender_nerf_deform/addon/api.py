@@ -85,10 +85,11 @@ def capture_dataset(out: str = "", objects=None, count: int = 100, test_count: i
 
 
 def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 0, device: str = "auto",
-          downscale: int = 1, resume: bool = False) -> bpy.types.Object:
-    """Train NeRF on a dataset folder (blocking), then the NeRF object that shows it."""
+          downscale: int = 1, resume: bool = False, masks: str = "auto") -> bpy.types.Object:
+    """Train NeRF on a dataset folder (blocking), then the NeRF object that shows it. `masks`: what the dataset's
+    masks mean ("object": the object alone, "ignore": pixels to skip, "auto": by their shape)."""
     _run(bpy.ops.nerf_deform.train_nerf, "Train NeRF", data=str(data), run_folder=str(run_folder), seconds=seconds,
-         steps=steps, device=device, downscale=downscale, resume=resume)
+         steps=steps, device=device, downscale=downscale, resume=resume, masks=masks)
     from .data.paths import default_run_folder
     import os
 

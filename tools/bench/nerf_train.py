@@ -50,7 +50,9 @@ def split_views(n_views: int) -> tuple[list[int], list[int]]:
     return list(range(0, n_views, 10)), list(range(5, n_views, 10))
 
 
-def evaluate(model, ds, substeps: int = 1) -> dict:
+def evaluate(model, ds, substeps: int = 1, pictures: str | None = None) -> dict:
+    """PSNR on white over the views of ds; with `pictures`, each view's photo and render side by side as a PNG
+    in that folder (floaters are seen before they are measured)."""
     psnrs, times, spr, cspr = [], [], [], []
     for cam, img in zip(ds.cameras, ds.images):
         t = time.perf_counter()
@@ -60,8 +62,16 @@ def evaluate(model, ds, substeps: int = 1) -> dict:
         psnrs.append(-10.0 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
         spr.append(out["density_samples_per_ray"])
         cspr.append(out["color_samples_per_ray"])
+        if pictures:
+            from PIL import Image
+
+            Path(pictures).mkdir(parents=True, exist_ok=True)
+            pair = np.concatenate([gt, out["rgb"]], axis=1)
+            Image.fromarray((np.clip(pair, 0, 1) * 255 + 0.5).astype(np.uint8)).save(
+                Path(pictures) / f"{cam.name}_{psnrs[-1]:.1f}dB.png")
     return {"psnr": float(np.mean(psnrs)), "render_s_median": float(np.median(times)),
-            "density_samples_per_ray": float(np.mean(spr)), "color_samples_per_ray": float(np.mean(cspr))}
+            "density_samples_per_ray": float(np.mean(spr)), "color_samples_per_ray": float(np.mean(cspr)),
+            "psnr_per_view": [round(float(p), 2) for p in psnrs]}
 
 
 def pose_summary(trainer: Trainer) -> dict | None:
@@ -111,6 +121,11 @@ def main() -> int:
     ap.add_argument("--error-rays", type=float, default=None,
                     help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)")
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
+    ap.add_argument("--pictures", help="with --final: write each held-out photo beside its final render here (PNG)")
+    ap.add_argument("--masks", default="auto", choices=("auto", "object", "ignore"),
+                    help="what the dataset's masks mean (default auto: decided by their shape)")
+    ap.add_argument("--min-views", type=int, default=None,
+                    help="cells framed by fewer training cameras are never occupied (default: TrainOptions.min_views)")
     ap.add_argument("--refine-poses", action="store_true", help="learn a correction of each training photo's pose")
     ap.add_argument("--pose-lr", type=float, default=None, help="its peak learning rate (default: TrainOptions.pose_lr)")
     ap.add_argument("--pose-start", type=float, default=None,
@@ -123,7 +138,9 @@ def main() -> int:
     if args.train_round:
         renderer.TRAIN_SAMPLES_PER_ROUND = args.train_round
 
-    ds = load_dataset(args.data, downscale=args.downscale)
+    ds = load_dataset(args.data, downscale=args.downscale, masks=args.masks)
+    if ds.mask_meaning:
+        print(f"masks: {ds.mask_meaning} ({ds.mask_reason})", file=sys.stderr)
     val_idx, held_out = split_views(len(ds))
     final_idx = held_out if args.final else []
     train = ds.subset([i for i in range(len(ds)) if i not in final_idx and (args.train_val or i not in val_idx)])
@@ -163,6 +180,8 @@ def main() -> int:
     if args.error_rays is not None:
         opts.error_rays = args.error_rays
     opts.refine_poses = args.refine_poses
+    if args.min_views is not None:
+        opts.min_views = args.min_views
     if args.pose_lr is not None:
         opts.pose_lr = args.pose_lr
     if args.pose_start is not None:
@@ -196,7 +215,7 @@ def main() -> int:
         final = evaluate(trainer.model, ds.subset(final_idx))
         final.update({"views": final_idx})
         print(json.dumps({"final": final}), flush=True)
-        final_substeps = evaluate(trainer.model, ds.subset(final_idx), substeps=FINAL_SUBSTEPS)
+        final_substeps = evaluate(trainer.model, ds.subset(final_idx), substeps=FINAL_SUBSTEPS, pictures=args.pictures)
         final_substeps.update({"views": final_idx, "substeps": FINAL_SUBSTEPS})
         print(json.dumps({"final_substeps": final_substeps}), flush=True)
     summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],

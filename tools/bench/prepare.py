@@ -62,6 +62,7 @@ def main() -> int:
     ap.add_argument("--max-size", type=int, default=1600)
     ap.add_argument("--matcher", default="exhaustive")
     ap.add_argument("--json")
+    ap.add_argument("--keep", help="copy the dataset prepare wrote to this folder (to train on its poses)")
     args = ap.parse_args()
     ds = load_dataset(args.data, load_images=False)
     true = {Path(c.name).stem: np.asarray(c.c2w) for c in ds.cameras}
@@ -80,6 +81,8 @@ def main() -> int:
         wall = time.perf_counter() - t0
         out = json.loads((Path(tmp) / "out" / "transforms.json").read_text())
         got = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in out["frames"]}
+        if args.keep:
+            shutil.copytree(Path(tmp) / "out", args.keep)
     result = {"photos": len(files), "registered": summary["registered"], "wall_s": wall, "timings": summary["timings"],
               "camera_model": summary["camera_model"], "max_size": args.max_size, "matcher": args.matcher,
               **compare(got, true)}

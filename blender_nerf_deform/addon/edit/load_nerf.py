@@ -149,6 +149,11 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         self._prepare_scene(context.scene)
         select_only(context, nerf)
         kind = "unbounded: a background surrounds the box" if unbounded else "bounded"
+        masks = result.get("config", {}).get("masks", "none")
+        if masks == "object":
+            kind += ", an object cut out by its masks: transparent around it"
+        elif masks == "ignore":
+            kind += ", trained with the masked-out pixels skipped"
         self.report({"INFO"}, f"Loaded {nerf.name} from {self._path} (box {_fmt(lo)} .. {_fmt(hi)}, {kind}{note})")
         return {"FINISHED"}
 

@@ -42,10 +42,10 @@ class NERFDEFORM_PT_train(_StagePanel, bpy.types.Panel):
     def draw(self, context):
         t = context.scene.nerf_deform_training
         col = self.layout.column()
-        for name in ("data", "run_folder", "seconds", "steps", "device", "downscale", "resume"):
+        for name in ("data", "run_folder", "seconds", "steps", "device", "downscale", "masks", "resume"):
             col.prop(t, name)
         op = col.operator(NERFDEFORM_OT_train_nerf.bl_idname, icon="PLAY")
-        for name in ("data", "run_folder", "seconds", "steps", "device", "downscale", "resume"):
+        for name in ("data", "run_folder", "seconds", "steps", "device", "downscale", "masks", "resume"):
             setattr(op, name, getattr(t, name))
         training_preview.draw_in_panel(col, context)
         box = self.layout.box()

@@ -66,6 +66,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bounded: the NeRF lives in the dataset's box (objects on transparent backgrounds); unbounded: "
                         "an inner box plus a contracted background for photos with a room or sky behind the object; "
                         "auto (default): unbounded for photos without alpha")
+    p.add_argument("--masks", choices=("auto", "object", "ignore"), default="auto",
+                   help="what the frames' masks (`mask_path`) mean: object: the object alone is real, outside the "
+                        "mask is empty space (a NeRF of the object, transparent around it: turntable and product "
+                        "captures); ignore: the masked-out pixels are not trained (passers-by), the rest of the "
+                        "photo is; auto (default): object when the masks keep a shape inside the photo, ignore when "
+                        "they keep most of it. The choice is printed")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/nerf.ckpt when it exists")
     p.add_argument("--overwrite", action="store_true", help="replace RUN_DIR/nerf.ckpt when it exists "
                    "(without --resume or --overwrite an existing checkpoint is an error)")

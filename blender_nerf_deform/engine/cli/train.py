@@ -2,7 +2,7 @@
 
     python -m blender_nerf_deform.engine train --data DIR --out RUN_DIR
         [--max-seconds S] [--steps N] [--seed N] [--device auto|cpu|cuda] [--downscale K] [--scene auto|bounded|unbounded]
-        [--resume | --overwrite]
+        [--masks auto|object|ignore] [--resume | --overwrite]
 
 Without --max-seconds or --steps it trains for 300 seconds. The checkpoint is
 rewritten (atomically) every --checkpoint-every seconds and at the end, also when
@@ -21,7 +21,8 @@ def main(args) -> int:
                            downscale=getattr(args, "downscale", 1), resume=getattr(args, "resume", False),
                            checkpoint_every=getattr(args, "checkpoint_every", 120.0),
                            seed=getattr(args, "seed", 0), overwrite=getattr(args, "overwrite", False),
-                           scene_model=getattr(args, "scene", "auto"), drop_blurry=getattr(args, "drop_blurry", 0.0))
+                           scene_model=getattr(args, "scene", "auto"), drop_blurry=getattr(args, "drop_blurry", 0.0),
+                           masks=getattr(args, "masks", "auto"))
     print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s, last batch PSNR "
           f"{summary.get('psnr', float('nan')):.2f} dB; wrote {summary['checkpoint']}")
     return 0

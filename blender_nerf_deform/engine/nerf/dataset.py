@@ -53,9 +53,9 @@ regions live), the same as `aabb` unless said below. In this order:
    nerf_position_to_ngp: the offset is added in the json's axis order, before the cycle;
    defaults scale 0.33, offset 0.5), and its scene is the cube of side aabb_scale (a power
    of two, 1 to 128) about q = (0.5, 0.5, 0.5). `inner_aabb` is the unit cube [0, 1]^3
-   mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), grown to hold the box the
-   cameras frame (frames.framed_box; the fox's head lies outside the unit cube) within the
-   scene cube, `aabb` the scene cube;
+   mapped back ([-1.515, 1.515]^3 with the defaults: 0.5 / 0.33), grown to the box derived
+   from the cameras (4. below: they stand on its faces) within the scene cube, `aabb` the
+   scene cube;
 3. NeRF-synthetic form (`camera_angle_x`): [-1.5, 1.5]^3, as docs/ARCHITECTURE.md's Conventions state;
 4. otherwise derived from the cameras (prepare's output, nerfstudio, COLMAP models):
    centred on the point closest (least squares) to all optical axes, half-width =
@@ -78,9 +78,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EngineError
+from .silhouettes import MASK_MEANINGS, hull_box, mask_meaning
 from .frames import (FORMAT_LABELS, FrameSource, NerfDataset, downscale_image, downscale_mask, find_image, frame_name, image_size,
                      laplacian_sharpness, lens_of, load_image, load_mask, number, pixels, camera_from_keys,
-                     check_c2w, derive_aabb, framed_box, scaled_camera)
+                     check_c2w, derive_aabb, scaled_camera)
 
 __all__ = ["FORMAT_LABELS", "NerfDataset", "load_dataset"]
 
@@ -160,14 +161,14 @@ def _transforms_boxes(meta: dict, where: str):
     return None, None
 
 
-def _grown_to_the_view(inner: np.ndarray, scene: np.ndarray, cameras: list) -> np.ndarray:
-    """instant-ngp's unit cube grown to hold what the cameras frame: a centred box as wide as the
-    mean camera's view along its image's longer side at the point the optical axes meet, within
-    the scene cube. instant-ngp models its whole scene cube, so a capture may put its object
-    partly outside the unit cube (the fox's nose reaches 2.5 from the centre, the cube 1.515,
-    the framed box 3.6); the inner box is where extraction, cages and regions work, so it must
-    hold the object. An `aabb` in the json overrides all this."""
-    seen = framed_box(cameras)
+def _grown_to_the_cameras(inner: np.ndarray, scene: np.ndarray, cameras: list) -> np.ndarray:
+    """instant-ngp's unit cube grown to the box derived from the cameras (frames.derive_aabb: the cameras
+    on its faces), within the scene cube. instant-ngp models its whole scene cube at full resolution, so a
+    capture may put its object partly outside the unit cube (the fox's nose reaches 2.5 from the centre,
+    the cube 1.515), and a capture shot all around puts the space between the cameras and the object
+    outside it (gold_cape: the cameras 4 away): there a contracted background would model, coarsely,
+    what every photo looks through. An `aabb` in the json overrides all this."""
+    seen = derive_aabb(cameras)
     grown = np.stack([np.minimum(inner[0], seen[0]), np.maximum(inner[1], seen[1])])
     return np.clip(grown, scene[0], scene[1]).astype(np.float32)
 
@@ -241,14 +242,14 @@ def _read_transforms(jpath: Path, downscale: int, load_images: bool) -> FrameSou
     if not cameras:
         raise EngineError(f"{jpath}: none of its {len(frames)} frames has an image file (first: {root / missing[0]})")
     if inner is not None and "aabb" not in meta:
-        inner = _grown_to_the_view(inner, aabb, cameras)
+        inner = _grown_to_the_cameras(inner, aabb, cameras)
     return FrameSource(cameras, paths, str(jpath), _transforms_format(meta, frames), aabb, inner, downscale,
                        masks if any(m is not None for m in masks) else None,
                        sharpness if all(s is not None for s in sharpness) else None,
                        meta, "`w`/`h` say", missing, len(frames))
 
 
-def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float) -> NerfDataset:
+def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float, masks_asked: str = "auto") -> NerfDataset:
     """Images, masks, boxes, sharpness filter: the part every format shares."""
     k = src.extra_downscale
     images, masks, size = [], [], None
@@ -268,8 +269,18 @@ def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float) 
                 if mask.shape != (h, w):
                     raise EngineError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {path} "
                                       f"is {w}x{h}")
-                masks.append(downscale_mask(mask, k) if k > 1 else mask)
-            images.append(downscale_image(img, k) if k > 1 else img)
+                masks.append(mask)
+            images.append(img)
+    meaning = why = None
+    if masks:
+        meaning, why = mask_meaning(masks, masks_asked)
+        if meaning == "object":  # the mask is the photo's alpha: outside it, empty space
+            for img, mask in zip(images, masks):
+                img[..., 3] *= mask
+            masks = []
+    if k > 1:
+        images = [downscale_image(img, k) for img in images]
+        masks = [downscale_mask(mask, k) for mask in masks]
     if src.missing_rel:
         print(f"warning: {src.source}: {len(src.missing_rel)} of {src.n_listed} frames have no image file and are "
               f"skipped (first: {src.missing_rel[0]})", file=sys.stderr)
@@ -277,9 +288,18 @@ def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float) 
     aabb = src.aabb if src.aabb is not None else derive_aabb(cameras)
     inner = src.inner_aabb if src.inner_aabb is not None else aabb.copy()
     imgs = np.stack(images) if images else None
+    if meaning == "object":
+        # The object is all there is: its box is what the silhouettes carve, within the cameras' reach.
+        box = hull_box(cameras, [img[..., 3] > 0.5 for img in imgs], derive_aabb(cameras))
+        if box is None:
+            raise EngineError(f"{src.source}: the object masks leave no point inside all of them (are the masks "
+                              "inverted, or the poses not the photos'?); pass --masks ignore to train the photos "
+                              "with the masked pixels skipped")
+        aabb, inner = box, box.copy()
     ds = NerfDataset(cameras, np.asarray(aabb, np.float32), [c.name for c in cameras], imgs, src.source,
                      bool((imgs[..., 3] < 1).any()) if imgs is not None else src.source_format == "nerf-synthetic",
-                     src.meta, np.asarray(inner, np.float32), np.stack(masks) if masks else None, src.source_format)
+                     src.meta, np.asarray(inner, np.float32), np.stack(masks) if masks else None, src.source_format,
+                     meaning, why)
     if min_sharpness_quantile:
         ds = _drop_blurry(ds, src.sharpness, min_sharpness_quantile)
     return ds
@@ -303,10 +323,12 @@ _LOOKED_FOR = ("transforms.json (instant-ngp, nerfstudio, NeRF-synthetic), poses
                "(cameras, images, points3D .bin/.txt here, in sparse/0/, sparse/ or 0/)")
 
 
-def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpness_quantile: float = 0.0) -> NerfDataset:
+def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpness_quantile: float = 0.0,
+                 masks: str = "auto") -> NerfDataset:
     """Load a dataset in any form the module docstring lists. Raises EngineError naming the file/key at fault.
 
     `min_sharpness_quantile` (train's --drop-blurry): drop that fraction of the frames, the blurriest.
+    `masks` (train's --masks): what the frames' masks mean, "object", "ignore" or "auto" (silhouettes.py).
     """
     from . import colmap_model, llff
 
@@ -332,4 +354,6 @@ def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpne
     else:
         raise EngineError(f"{p}: not a dataset file: give a transforms.json, LLFF's poses_bounds.npy, a COLMAP "
                           "model file, or the folder holding one")
-    return _finish(src, load_images, float(q))
+    if masks not in MASK_MEANINGS:
+        raise EngineError(f"--masks {masks!r}: one of {', '.join(MASK_MEANINGS)}")
+    return _finish(src, load_images, float(q), masks)

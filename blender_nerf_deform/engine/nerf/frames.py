@@ -31,7 +31,8 @@ class NerfDataset:
     """Images (N, H, W, 4) float32 straight-alpha RGBA in [0,1] (None when loaded without images),
     cameras (one per frame), the boxes `aabb` (2, 3: the whole scene) and `inner_aabb` (2, 3: the
     object region, inside aabb; an unbounded model's inner box), the frames' names (file basenames
-    without extension), `masks` (None, or (N, H, W) bool: True = the pixel counts in the loss),
+    without extension), `masks` (None, or (N, H, W) bool: True = the pixel counts in the loss; object
+    masks are in the images' alpha instead, `mask_meaning` says which),
     `has_alpha` (some image has alpha < 1; without images: the NeRF-synthetic form), `source` (the
     file or folder read) and `source_format` (a key of FORMAT_LABELS)."""
 
@@ -45,6 +46,8 @@ class NerfDataset:
     inner_aabb: np.ndarray | None = None
     masks: np.ndarray | None = None
     source_format: str = ""
+    mask_meaning: str | None = None  # None: no masks; "object" (now the alpha) or "ignore" (`masks`): silhouettes.py
+    mask_reason: str | None = None  # why the masks were read so (what the command line and Blender report)
 
     def __post_init__(self):
         if self.inner_aabb is None:
@@ -319,12 +322,3 @@ def derive_aabb(cameras: list) -> np.ndarray:
     modelled at full resolution, and the render step (the box's diagonal / 256) is not needlessly fine."""
     centre, dist = _axes_centre(cameras)
     return np.stack([centre - dist, centre + dist]).astype(np.float32)
-
-
-def framed_box(cameras: list) -> np.ndarray:
-    """The box the cameras frame: centred where their optical axes meet, as wide as the mean camera's
-    view along its image's longer side there (the wider field of view), at most the camera distance."""
-    centre, dist = _axes_centre(cameras)
-    half_fov = min(max(math.atan(0.5 * c.width / c.fx), math.atan(0.5 * c.height / c.fy)) for c in cameras)
-    half = dist * min(math.tan(half_fov), 1.0)
-    return np.stack([centre - half, centre + half]).astype(np.float32)

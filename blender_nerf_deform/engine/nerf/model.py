@@ -35,6 +35,7 @@ from .encoding import HashEncoding, sh_encode
 from .occupancy import ContractedGrid, OccupancyGrid
 
 CONTRACTIONS = ("none", "linf")
+MASK_RECORDS = ("none", "object", "ignore")
 
 
 @dataclass
@@ -60,6 +61,9 @@ class NerfConfig:
     near_plane: float = 0.0  # rays start this far from the camera (unbounded scenes: no floaters on the lens)
     appearance_dim: int = 0  # per-image appearance code fed to the colour MLP (exposure, white balance); 0: none
     appearance_count: int = 0  # training images with a code; frames render with their mean
+    # How training read the dataset's masks: "none" (it had none), "object" (the object alone: empty around it),
+    # "ignore" (the masked-out pixels were skipped). What Load NeRF reports; the model is the same either way.
+    masks: str = "none"
 
     @classmethod
     def from_dict(cls, d: dict) -> "NerfConfig":
@@ -88,6 +92,8 @@ class NerfConfig:
                 raise EngineError(f"config `{name}` = {v!r} is invalid: it must be {length} finite numbers")
         if not all(self.aabb[i + 3] > self.aabb[i] for i in range(3)):
             raise EngineError(f"config `aabb` = {self.aabb!r} is not a box (max > min on every axis)")
+        if self.masks not in MASK_RECORDS:
+            raise EngineError(f"config `masks` = {self.masks!r} is invalid: one of {', '.join(MASK_RECORDS)}")
         if self.contraction not in CONTRACTIONS:
             raise EngineError(f"config `contraction` = {self.contraction!r} is invalid: one of {', '.join(CONTRACTIONS)}")
         if not _finite_number(self.near_plane) or self.near_plane < 0:

@@ -27,6 +27,8 @@ class OccupancyGrid:
         self._bounds = None
         self._bounds_of = None
         self._any = None
+        # Cells that may ever be occupied (None: all): what the training cameras see (visibility.py).
+        self.allowed = None
 
     @classmethod
     def from_mask(cls, aabb, mask: torch.Tensor) -> "OccupancyGrid":
@@ -45,6 +47,8 @@ class OccupancyGrid:
         self.aabb = self.aabb.to(device)
         self.density = self.density.to(device)
         self.mask = self.mask.to(device)
+        if self.allowed is not None:
+            self.allowed = self.allowed.to(device)
         self._bounds = None
         return self
 
@@ -151,9 +155,17 @@ class OccupancyGrid:
                                      include_self=False)
         self._threshold(step_size, threshold)
 
+    def restrict(self, allowed: torch.Tensor) -> None:
+        """Only the cells of the flat bool mask `allowed` may be occupied, from now on and at every update."""
+        self.allowed = allowed.to(self.mask.device).reshape(-1)
+        self.mask = self.mask & self.allowed
+        self._bounds = None
+
     def _threshold(self, step_size: float, threshold: float) -> None:
         opacity = self.density * step_size
         self.mask = opacity > min(threshold, float(opacity.mean()))
+        if self.allowed is not None:
+            self.mask &= self.allowed
         self._bounds = None
 
     def _to_world(self, grid_points: torch.Tensor) -> torch.Tensor:
@@ -219,4 +231,6 @@ class ContractedGrid(OccupancyGrid):
         shell = self._shell
         mean = float(opacity[shell].mean()) if bool(shell.any()) else 0.0
         self.mask = (opacity > min(threshold, mean)) & shell
+        if self.allowed is not None:
+            self.mask &= self.allowed
         self._bounds = None

@@ -44,6 +44,8 @@ from .dataset import NerfDataset, load_dataset
 from .model import NerfConfig, NerfModel, resolve_device
 from .lens import camera_directions
 from .renderer import render_image, render_rays
+from .silhouettes import MASK_LABELS, carve
+from .visibility import framed_cells
 
 
 OCC_UPDATE_EVERY_PER_GRID = 16
@@ -86,6 +88,8 @@ class TrainOptions:
     refine_poses: bool = False
     pose_lr: float = 1e-4
     pose_start: float = 0.3
+    # Cells framed by fewer training cameras than this are never occupied (visibility.py); 0: no limit.
+    min_views: int = 0
 
 
 def distortion_loss(ray_idx: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, w: torch.Tensor, n_rays: int,
@@ -164,6 +168,14 @@ class Trainer:
         self.n_rays = max(64, min(self.opt.init_rays, 2 * self.opt.target_samples // model.config.steps_per_diagonal))
         self.last = {}
         self.grids = [model.occupancy] + ([model.background] if model.background is not None else [])
+        if self.opt.min_views > 0:
+            for grid in self.grids:
+                grid.restrict(framed_cells(grid, dataset.cameras, self.opt.min_views, model.config.near_plane))
+        if dataset.mask_meaning == "object" and not model.unbounded:
+            # Object masks: nothing outside the silhouettes' hull is ever occupied.
+            grid = model.occupancy
+            cells = grid.cell_centers(torch.arange(grid.resolution**3, device=dev), jitter=False).cpu().numpy()
+            grid.restrict(torch.from_numpy(carve(cells, dataset.cameras, [img[..., 3] > 0.5 for img in dataset.images])))
         dw = self.opt.distortion_weight
         self.distortion = float(dw if dw is not None else (0.01 if model.background is not None else 0.0))
         self.distortion_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
@@ -473,8 +485,9 @@ def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     docstring). The unbounded hash grid spans the contracted cube, of which the inner box is the
     middle half per axis: its finest resolution doubles so the inner box keeps the bounded one's."""
     unbounded = scene_model == "unbounded" or (scene_model == "auto" and not ds.has_alpha)
+    masks = ds.mask_meaning or "none"
     if not unbounded:
-        return NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)])
+        return NerfConfig(aabb=[float(v) for v in ds.aabb.reshape(-1)], masks=masks)
     inner = np.asarray(ds.inner_aabb if ds.inner_aabb is not None else ds.aabb, dtype=np.float64).reshape(2, 3)
     base = NerfConfig()
     half = float((inner[1] - inner[0]).max() / 2)
@@ -482,7 +495,7 @@ def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     # 13 % fewer samples per ray (BENCHMARKS.md, issue 13).
     return NerfConfig(aabb=[float(v) for v in inner.reshape(-1)], contraction="linf", steps_per_diagonal=256,
                       finest_resolution=2 * base.finest_resolution, near_plane=0.05 * half,
-                      occ_threshold=UNBOUNDED_OCC_THRESHOLD)
+                      occ_threshold=UNBOUNDED_OCC_THRESHOLD, masks=masks)
 
 
 SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.manual_seed accepts
@@ -503,7 +516,7 @@ def check_budget(steps=None, max_seconds=None, seed: int = 0, checkpoint_every: 
 def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
                  checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
                  seed: int = 0, overwrite: bool = False, scene_model: str = "auto", drop_blurry: float = 0.0,
-                 callback=None) -> dict:
+                 callback=None, masks: str = "auto") -> dict:
     """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
     `callback(trainer)` runs after every step (the worker reports progress from it).
 
@@ -522,9 +535,11 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
     dev = resolve_device(device)
     if steps is None and max_seconds is None:
         max_seconds = DEFAULT_SECONDS
-    ds = load_dataset(data, downscale=downscale, min_sharpness_quantile=drop_blurry)
+    ds = load_dataset(data, downscale=downscale, min_sharpness_quantile=drop_blurry, masks=masks)
     if progress:
         print(f"read {ds.describe()}", file=sys.stderr)
+        if ds.mask_meaning:
+            print(f"masks: {MASK_LABELS[ds.mask_meaning]}: {ds.mask_reason}", file=sys.stderr)
     out = Path(out_dir)
     ckpt = out / "nerf.ckpt"
     _check_replace(ckpt, resume, overwrite)
@@ -575,7 +590,8 @@ def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, che
     t0 = time.perf_counter()
     summary = trainer.train(progress=progress, should_stop=should_stop, callback=callback)
     summary.update({"checkpoint": str(ckpt), "device": str(dev), "wall_seconds": time.perf_counter() - t0,
-                    "images": len(ds), "width": ds.width, "height": ds.height})
+                    "images": len(ds), "width": ds.width, "height": ds.height, "masks": ds.mask_meaning,
+                    "masks_reason": ds.mask_reason})
     text = json.dumps(summary, indent=1).encode()
     atomic_write(out / "train.json", lambda f: f.write(text))
     return summary

@@ -71,6 +71,7 @@ from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
 from ..nerf.checkpoint import load_nerf
 from ..nerf.model import device_summary
+from ..nerf.silhouettes import MASK_MEANINGS
 from ..nerf.substeps import check_substeps
 from .registry import Cancelled, Job, op
 from .session import SESSION
@@ -160,6 +161,9 @@ def train(job: Job) -> dict:
     downscale = p.get("downscale", 1)
     if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
         raise EngineError(f"train's `downscale` must be a whole number >= 1, got {downscale!r}")
+    masks = p.get("masks", "auto")
+    if masks not in MASK_MEANINGS:
+        raise EngineError(f"train's `masks` must be one of {', '.join(MASK_MEANINGS)}, got {masks!r}")
     last = [0.0]
     checkpoint = _same_path_key(os.path.join(p["out"], "nerf.ckpt"))
 
@@ -188,8 +192,10 @@ def train(job: Job) -> dict:
         summary = run_training(p["data"], p["out"], max_seconds=seconds, steps=steps, device=p.get("device", "auto"),
                                downscale=downscale, resume=bool(p.get("resume")),
                                overwrite=bool(p.get("overwrite")), progress=False, callback=report,
-                               should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"))
-    keep = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height")
+                               should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"),
+                               masks=masks)
+    keep = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height", "masks",
+            "masks_reason")
     return {**{k: summary[k] for k in keep if k in summary}, "cancelled": job.cancel_event.is_set()}
 
 
