@@ -14,7 +14,8 @@ import pytest
 from PIL import Image
 
 from fixtures import REPO
-from fixtures.sphere_data import write_sphere_dataset
+from fixtures.sphere_data import look_at, write_sphere_dataset
+from fixtures.turntable_data import write_turntable
 
 
 def _eval_psnr(ckpt, data) -> float:
@@ -103,3 +104,40 @@ def test_train_nerf_bad_input_is_reported(addon, tmp_path):
         bpy.ops.nerf_deform.train_nerf(data=str(tmp_path / "junk"), run_folder=str(tmp_path / "run"), steps=5, seconds=0)
     assert not (tmp_path / "run").exists()
     assert not [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
+
+
+@pytest.mark.slow
+def test_an_object_cut_out_by_its_masks_trains_loads_extracts_and_renders_transparent_around_it(addon, tmp_path,
+                                                                                                capfd):
+    """A turntable capture with object masks, from Blender: Train NeRF reads the masks as the object alone and
+    says so, Load NeRF says what it loaded, Extract Mesh needs no edit region (nothing but the object is
+    there) and F12 renders the object over transparency."""
+    bpy = addon
+    data = write_turntable(tmp_path / "turntable", n_views=16)
+    assert bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(tmp_path / "run"), steps=200, seconds=0,
+                                          device="cpu") == {"FINISHED"}
+    printed = capfd.readouterr().out
+    assert "masks read as the object alone (transparent around it): the masks keep a shape" in printed, printed[-2000:]
+    assert "bounded, an object cut out by its masks: transparent around it" in printed, printed[-2000:]
+    nerf = bpy.context.active_object
+    lo, hi = np.array(nerf.nerf_deform.aabb[:3]), np.array(nerf.nerf_deform.aabb[3:])
+    assert (lo <= -0.8).all() and (hi >= 0.8).all() and (hi - lo).max() < 2.4  # the sphere's box, not the cameras'
+    assert bpy.ops.nerf_deform.extract_mesh() == {"FINISHED"}
+    verts = np.array([v.co[:] for v in nerf.nerf_deform.surface.data.vertices])
+    assert len(verts) > 100 and np.abs(np.linalg.norm(verts, axis=1) - 0.8).mean() < 0.15
+    cam_data = bpy.data.cameras.new("Camera")
+    camera = bpy.data.objects.new("Camera", cam_data)
+    bpy.context.scene.collection.objects.link(camera)
+    bpy.context.scene.camera = camera
+    from mathutils import Matrix
+
+    camera.matrix_world = Matrix(look_at((2.2, -2.0, 1.0)).tolist())
+    scene = bpy.context.scene
+    scene.render.resolution_x = scene.render.resolution_y = 40
+    scene.render.resolution_percentage = 100
+    scene.render.filepath = str(tmp_path / "object.png")
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    alpha = np.asarray(Image.open(tmp_path / "object.png").convert("RGBA"), dtype=np.float64)[..., 3] / 255
+    assert alpha[17:23, 17:23].min() > 0.8  # the object in the middle
+    border = np.concatenate([alpha[:3].ravel(), alpha[-3:].ravel(), alpha[:, :3].ravel(), alpha[:, -3:].ravel()])
+    assert border.max() < 0.1  # and nothing around it: no fog where the masks said empty

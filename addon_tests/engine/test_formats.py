@@ -314,6 +314,31 @@ def test_detection_order_and_what_was_looked_for(tmp_path):
         assert needle in msg
     (empty / "notes.txt").write_text("x")
     _one_line_error(r"notes\.txt: not a dataset file", empty / "notes.txt")
+    # Photos without cameras: the way on is `prepare`, not a list of formats.
+    for k in range(3):
+        Image.new("RGB", (8, 6)).save(empty / f"IMG_{k}.JPG")
+    msg = _one_line_error(r"empty: 3 photos and no cameras: find them first with `prepare --images ", empty)
+    assert "Import Photos" in msg and "looked for" not in msg
+
+
+def test_a_capture_shot_all_around_puts_its_cameras_on_the_inner_box(tmp_path):
+    """instant-ngp's json of a 360-degree capture (gold_cape's form: cameras 4 away, a narrow lens, aabb_scale
+    16): the inner box reaches the cameras, so the space every photo looks through is modelled at full
+    resolution, not by the contracted background (held-out photos of gold_cape: BENCHMARKS.md)."""
+    c2ws = sphere_cameras(12)
+    for m in c2ws:
+        m[:3, 3] *= 4.0 / np.linalg.norm(m[:3, 3])
+    folder = tmp_path / "ring"
+    folder.mkdir()
+    frames = []
+    for k, m in enumerate(c2ws):
+        Image.new("RGB", (8, 8)).save(folder / f"{k}.png")
+        frames.append({"file_path": f"{k}.png", "transform_matrix": m.tolist()})
+    (folder / "transforms.json").write_text(json.dumps({"fl_x": 30.0, "w": 8, "h": 8, "aabb_scale": 16,
+                                                        "frames": frames}))
+    ds = load_dataset(folder)
+    np.testing.assert_allclose(ds.inner_aabb, [[-4] * 3, [4] * 3], atol=0.05)
+    np.testing.assert_allclose(ds.aabb, [[-16 * 0.5 / 0.33] * 3, [16 * 0.5 / 0.33] * 3], rtol=1e-6)
 
 
 def test_nerf_synthetic_and_photo_formats_report_alpha_and_format(tmp_path):
@@ -361,8 +386,8 @@ def test_shared_captures_load_in_their_formats():
     ds = load_dataset(fox, downscale=8, load_images=False)
     assert ds.source_format == "instant-ngp"
     np.testing.assert_allclose(ds.aabb, [[-4 * 0.5 / 0.33] * 3, [4 * 0.5 / 0.33] * 3], rtol=1e-6)
-    # The inner box holds instant-ngp's unit cube and what the cameras frame, within the scene: the
-    # fox's nose (2.5 from the centre, where a NeRF of it puts the surface) lies outside the unit cube.
+    # The inner box holds instant-ngp's unit cube and reaches the cameras, within the scene: the fox's
+    # nose (2.5 from the centre, where a NeRF of it puts the surface) lies outside the unit cube.
     ilo, ihi = ds.inner_aabb
     assert np.all(ilo <= -0.5 / 0.33 + 1e-6) and np.all(ihi >= 0.5 / 0.33 - 1e-6)
     assert np.all(ilo >= ds.aabb[0]) and np.all(ihi <= ds.aabb[1])

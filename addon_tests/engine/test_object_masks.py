@@ -9,46 +9,17 @@ import sys
 import numpy as np
 import pytest
 import torch
-from PIL import Image
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.nerf.dataset import load_dataset
-from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+from blender_nerf_deform.engine.nerf.model import NerfModel
 from blender_nerf_deform.engine.nerf.renderer import render_image
 from blender_nerf_deform.engine.nerf.silhouettes import carve, mask_meaning
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for
 
 from fixtures import REPO
-from fixtures.sphere_data import ANGLE_X, RADIUS, render_sphere, sphere_cameras
-
-SIZE = 32
-
-
-def write_turntable(folder, n_views: int = 24, seed: int = 0, ignore_style: bool = False):
-    """The sphere photographed without alpha in front of a background that changes from photo to photo (a
-    turntable capture: the object turns, the room does not follow), with a mask per photo: the object's
-    silhouette, or with `ignore_style` everything but a patch (a passer-by)."""
-    rng = np.random.default_rng(seed)
-    (folder / "images").mkdir(parents=True)
-    (folder / "masks").mkdir()
-    frames = []
-    for k, c2w in enumerate(sphere_cameras(n_views, seed=seed)):
-        img = render_sphere(c2w, SIZE)
-        room = rng.uniform(0, 1, (SIZE, SIZE, 3))
-        photo = img[..., :3] * img[..., 3:] + room * (1 - img[..., 3:])
-        if ignore_style:
-            mask = np.ones((SIZE, SIZE), bool)
-            mask[2:9, 20:30] = False
-        else:
-            mask = img[..., 3] > 0.5
-        Image.fromarray((photo * 255 + 0.5).astype(np.uint8), "RGB").save(folder / "images" / f"p{k}.png")
-        Image.fromarray(mask.astype(np.uint8) * 255, "L").save(folder / "masks" / f"p{k}.png")
-        frames.append({"file_path": f"images/p{k}.png", "mask_path": f"masks/p{k}.png", "transform_matrix": c2w.tolist()})
-    f = 0.5 * SIZE / np.tan(0.5 * ANGLE_X)
-    meta = {"fl_x": f, "fl_y": f, "cx": SIZE / 2, "cy": SIZE / 2, "w": SIZE, "h": SIZE, "aabb_scale": 4,
-            "frames": frames}
-    (folder / "transforms.json").write_text(json.dumps(meta))
-    return folder
+from fixtures.sphere_data import RADIUS, render_sphere, sphere_cameras
+from fixtures.turntable_data import SIZE, write_turntable
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +83,7 @@ def test_object_masks_train_an_object_transparent_around_it(turntable):
             setattr(cfg, k, v)
         torch.manual_seed(0)
         model = NerfModel(cfg)
-        Trainer(model, ds, TrainOptions(steps=250, seed=0)).train(progress=False)
+        Trainer(model, ds, TrainOptions(steps=150, seed=0)).train(progress=False)
         if meaning == "object":  # nothing outside the silhouettes' hull is ever occupied
             grid = model.occupancy
             centres = grid.cell_centers(torch.arange(grid.resolution**3), jitter=False).numpy()

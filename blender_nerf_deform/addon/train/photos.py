@@ -22,7 +22,7 @@ import os
 import bpy
 from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from ...engine.sfm import IMAGE_SUFFIXES
+from ...engine.sfm import photo_names
 from ..data.paths import default_run_folder
 from ..worker.jobs import WorkerOperator, WorkerRequest
 from .operators import show_trained, train_params
@@ -56,7 +56,7 @@ class NERFDEFORM_OT_import_photos(WorkerOperator, bpy.types.Operator):
         photos = os.path.abspath(bpy.path.abspath(self.photos)) if self.photos else ""
         if not photos or not os.path.isdir(photos):
             raise ValueError(f"photos folder {photos or '(none)'} does not exist: pick a folder of photos")
-        count = sum(1 for e in os.scandir(photos) if e.is_file() and os.path.splitext(e.name)[1] in IMAGE_SUFFIXES)
+        count = len(photo_names(photos))
         if count < MIN_PHOTOS:
             raise ValueError(f"{photos} holds {count} photos (.jpg/.png); finding their cameras needs at least "
                              f"{MIN_PHOTOS}, and a few dozen overlapping ones work best")

@@ -5,7 +5,7 @@ Format (a dict written by `torch.save`, read by `torch.load(weights_only=True)`)
     {"format": "blender_nerf_deform.nerf", "version": 1,
      "config": NerfConfig as a plain dict,
      "state": the model's state_dict (tensors),
-     "occupancy": {"density": tensor, "mask": tensor},
+     "occupancy": {"density": tensor, "mask": tensor[, "allowed": tensor: the cells training ruled in]},
      "background": {"density": tensor, "mask": tensor}   (unbounded NeRFs only: the contracted grid),
      "trainer": optional plain dict + tensors to resume training}
 
@@ -41,6 +41,8 @@ def save_nerf(model: NerfModel, path, trainer_state: dict | None = None) -> None
         "occupancy": {"density": model.occupancy.density.cpu(), "mask": model.occupancy.mask.cpu(),
                       "resolution": model.occupancy.resolution},
     }
+    if model.occupancy.allowed is not None:
+        payload["occupancy"]["allowed"] = model.occupancy.allowed.cpu()
     if model.background is not None:
         payload["background"] = {"density": model.background.density.cpu(), "mask": model.background.mask.cpu(),
                                  "resolution": model.background.resolution}
@@ -125,6 +127,11 @@ def load_nerf(path, device="auto") -> NerfModel:
         if model.occupancy.mask.numel() != n_cells or model.occupancy.density.numel() != n_cells:
             raise ValueError(f"occupancy grid of {model.occupancy.mask.numel()} cells, the config's "
                              f"occ_resolution {config.occ_resolution} needs {n_cells}")
+        if occ.get("allowed") is not None:
+            allowed = occ["allowed"]
+            if not isinstance(allowed, torch.Tensor) or allowed.numel() != n_cells:
+                raise ValueError(f"occupancy `allowed` must be a tensor of {n_cells} cells")
+            model.occupancy.restrict(allowed.bool())
         if model.background is not None:
             if not isinstance(data.get("background"), dict):
                 raise ValueError("an unbounded NeRF's checkpoint lacks its background occupancy grid")

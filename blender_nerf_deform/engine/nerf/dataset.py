@@ -78,6 +78,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EngineError
+from ..sfm import photo_names
 from .silhouettes import MASK_MEANINGS, hull_box, mask_meaning
 from .frames import (FORMAT_LABELS, FrameSource, NerfDataset, downscale_image, downscale_mask, find_image, frame_name, image_size,
                      laplacian_sharpness, lens_of, load_image, load_mask, number, pixels, camera_from_keys,
@@ -348,6 +349,10 @@ def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpne
         src = llff.read(p, downscale, load_images)
     elif colmap_model.find(p) is not None:
         src = colmap_model.read(p, downscale, load_images)
+    elif p.is_dir() and photo_names(p):
+        raise EngineError(f"{p}: {len(photo_names(p))} photos and no cameras: find them first with `prepare --images "
+                          f"{p} --out DATASET_DIR` (structure from motion), then train on DATASET_DIR; in Blender, "
+                          "Import Photos does both")
     elif p.is_dir():
         raise EngineError(f"{p}: no dataset in this folder: no transforms.json, and no poses_bounds.npy or COLMAP "
                           f"model; looked for {_LOOKED_FOR}")

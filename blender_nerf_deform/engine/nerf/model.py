@@ -245,8 +245,13 @@ class NerfModel(torch.nn.Module):
         return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
-        """Volume density (N,) >= 0 at world points (N, 3); 0 outside the aabb."""
-        return self.density_and_features(points)[0]
+        """Volume density (N,) >= 0 at world points (N, 3); 0 outside the aabb, and in the cells training ruled out
+        (`OccupancyGrid.restrict`: outside an object's silhouettes, or paid for by too few photos), which frames
+        skip too, so that extraction and the occupancy updates see what renders."""
+        sigma = self.density_and_features(points)[0]
+        if self.occupancy.allowed is not None:
+            sigma = sigma * self.occupancy.permitted(points)
+        return sigma
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(density (N,), rgb (N, 3) in [0, 1]) at world points seen along directions dirs."""

@@ -155,9 +155,18 @@ class OccupancyGrid:
                                      include_self=False)
         self._threshold(step_size, threshold)
 
+    def permitted(self, points: torch.Tensor) -> torch.Tensor:
+        """Bool (N,): the point may hold density (outside the grid, or in a cell `restrict` left allowed)."""
+        if self.allowed is None:
+            return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+        idx, inside = self.cell_index(points)
+        return self.allowed[idx] | ~inside
+
     def restrict(self, allowed: torch.Tensor) -> None:
-        """Only the cells of the flat bool mask `allowed` may be occupied, from now on and at every update."""
-        self.allowed = allowed.to(self.mask.device).reshape(-1)
+        """Only the cells of the flat bool mask `allowed` (and of every earlier restriction) may be occupied, from
+        now on and at every update."""
+        allowed = allowed.to(self.mask.device).reshape(-1)
+        self.allowed = allowed if self.allowed is None else self.allowed & allowed
         self.mask = self.mask & self.allowed
         self._bounds = None
 

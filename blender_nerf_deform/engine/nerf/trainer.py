@@ -45,7 +45,7 @@ from .model import NerfConfig, NerfModel, resolve_device
 from .lens import camera_directions
 from .renderer import render_image, render_rays
 from .silhouettes import MASK_LABELS, carve
-from .visibility import framed_cells
+from .visibility import ViewCounts, record_seen
 
 
 OCC_UPDATE_EVERY_PER_GRID = 16
@@ -88,7 +88,8 @@ class TrainOptions:
     refine_poses: bool = False
     pose_lr: float = 1e-4
     pose_start: float = 0.3
-    # Cells framed by fewer training cameras than this are never occupied (visibility.py); 0: no limit.
+    # Inner cells that rays of fewer training photos than this looked through are never occupied (visibility.py);
+    # 0 or 1: no limit.
     min_views: int = 0
 
 
@@ -168,9 +169,8 @@ class Trainer:
         self.n_rays = max(64, min(self.opt.init_rays, 2 * self.opt.target_samples // model.config.steps_per_diagonal))
         self.last = {}
         self.grids = [model.occupancy] + ([model.background] if model.background is not None else [])
-        if self.opt.min_views > 0:
-            for grid in self.grids:
-                grid.restrict(framed_cells(grid, dataset.cameras, self.opt.min_views, model.config.near_plane))
+        # Which photos pay for each inner cell's density (visibility.py); the background grid is left alone.
+        self.view_counts = [ViewCounts(model.occupancy)] if self.opt.min_views > 1 else []
         if dataset.mask_meaning == "object" and not model.unbounded:
             # Object masks: nothing outside the silhouettes' hull is ever occupied.
             grid = model.occupancy
@@ -298,6 +298,8 @@ class Trainer:
             for grid in self.grids:
                 k = int(grid.resolution**3 * self.opt.occ_fraction)
                 grid.update(m.density, step, m.config.occ_threshold, n_uniform=k, n_occupied=k)
+        for counts in self.view_counts:
+            counts.grid.restrict(counts.paid_for(self.opt.min_views))
         m.train(was)
 
     def _optimizer_step(self, lr: float) -> None:
@@ -330,8 +332,10 @@ class Trainer:
             bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
         codes = m.appearance(images) if m.appearance is not None else None
-        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0,
-                          appearance=codes)
+        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True,
+                          return_samples=self.distortion > 0 or bool(self.view_counts), appearance=codes)
+        if self.view_counts and out.get("samples") is not None:
+            record_seen(self.view_counts, out["samples"], o, d, images)
         squared = (out["rgb"] - tgt) ** 2
         loss = mse = torch.mean(squared)
         if self.distortion > 0 and out.get("samples") is not None:

@@ -1,46 +1,77 @@
-"""What the training cameras see: how many of them frame each point, and the occupancy cells seen by enough.
+"""Which training photos pay for the density of each occupancy cell, and the cells too few of them pay for.
 
-A capture shot all around a subject leaves space that only one or two photos see: the cone right in
-front of each camera above all. A NeRF can explain those photos with density hanging there (the
-photo pays for it, no other does), and a view between the training cameras then looks through it:
-grey floaters in front of the subject. Nerfbusters culls what no training view sees; cells framed by
-fewer than `min_views` training cameras are never occupied here, so the field cannot put density where
-too few photos would pay for it. A pinhole test per camera (the lens's distortion is within the margin
-of whole cells), no occlusion: what a camera frames, not what it sees of it.
+A capture shot all around a subject leaves space that one photo alone looks through: the cone right in
+front of each camera above all, hidden behind the subject from the far side. A NeRF can explain that
+photo with density hanging there (that photo pays for it, no other does), and a view between the
+training cameras then looks through it: grey floaters in front of the subject. Counting the cameras
+whose frustum holds a cell (Nerfbusters' visibility) misses them, since the cameras across the room
+frame that space too, behind the subject; what matters is which photos' rays reach a cell while they
+still see through (transmittance above one half: what is there shows in the photo, so the photo pays).
+
+`ViewCounts` keeps per cell the set of such photos (bit photo % 64 of an int64: photos beyond 64 share
+bits, so a count errs low) and how many training samples looked through it. A cell that enough samples
+have reached (`MIN_SAMPLES`, so that a cell many photos see is not judged on its first rays) from fewer
+than `min_views` photos is never occupied again; a cell no sample reached is left as it is.
 """
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from .occupancy import OccupancyGrid
 
-
-def views_framing(points: torch.Tensor, cameras: list, near: float = 0.0, chunk: int = 1 << 18) -> torch.Tensor:
-    """(N,) int32: how many of `cameras` frame each world point (N, 3): in front of the camera beyond `near`
-    and inside its image."""
-    dev = points.device
-    c2w = torch.tensor(np.stack([c.c2w[:3, :4] for c in cameras]), dtype=torch.float32, device=dev)
-    rot_t = c2w[:, :3, :3].transpose(1, 2).contiguous()  # world -> camera
-    origin = c2w[:, :3, 3]
-    intr = torch.tensor([[c.fx, c.fy, c.cx, c.cy, c.width, c.height] for c in cameras], dtype=torch.float32, device=dev)
-    counts = torch.zeros(points.shape[0], dtype=torch.int32, device=dev)
-    for s in range(0, points.shape[0], chunk):
-        p = points[s: s + chunk]
-        for k in range(len(cameras)):
-            q = (p - origin[k]) @ rot_t[k].T  # camera space: looking down -Z, +Y up
-            z = -q[:, 2]
-            fx, fy, cx, cy, w, h = intr[k].unbind()
-            zs = z.clamp_min(1e-9)
-            i = fx * q[:, 0] / zs + cx
-            j = -fy * q[:, 1] / zs + cy
-            counts[s: s + chunk] += ((z > near) & (i >= 0) & (i <= w) & (j >= 0) & (j <= h)).int()
-    return counts
+MIN_SAMPLES = 32  # samples that reached a cell before its photos are counted
+_BITS = 64
+_POPCOUNT = torch.tensor([bin(b).count("1") for b in range(256)], dtype=torch.int16)
 
 
-def framed_cells(grid: OccupancyGrid, cameras: list, min_views: int, near: float = 0.0) -> torch.Tensor:
-    """Flat bool (resolution^3,): the grid's cells whose centre at least `min_views` of `cameras` frame."""
-    idx = torch.arange(grid.resolution**3, device=grid.mask.device)
-    centres = grid.cell_centers(idx, jitter=False)
-    return views_framing(centres, cameras, near) >= min_views
+def exclusive_weight(w: torch.Tensor, ray_idx: torch.Tensor) -> torch.Tensor:
+    """Per sample (sorted by ray then t), the weight of its ray's samples before it: 1 - its transmittance."""
+    total = torch.cumsum(w, 0)
+    before = total - w
+    first = torch.ones_like(ray_idx, dtype=torch.bool)
+    first[1:] = ray_idx[1:] != ray_idx[:-1]
+    start = torch.cummax(torch.where(first, torch.arange(len(w), device=w.device), 0), 0).values
+    return before - before[start]
+
+
+class ViewCounts:
+    """Per cell of `grid`: the training photos whose rays reached it seeing through, and how many samples did."""
+
+    def __init__(self, grid: OccupancyGrid):
+        self.grid = grid
+        n = grid.resolution**3
+        self.photos = torch.zeros(n, dtype=torch.int64, device=grid.mask.device)
+        self.samples = torch.zeros(n, dtype=torch.int32, device=grid.mask.device)
+
+    @torch.no_grad()
+    def record(self, points: torch.Tensor, photo: torch.Tensor) -> None:
+        """Samples at world `points` (S, 3) of rays from training photos `photo` (S,) that still saw through."""
+        cells, inside = self.grid.cell_index(points)
+        cells, photo = cells[inside], photo[inside]
+        if not cells.numel():
+            return
+        self.samples.index_add_(0, cells, torch.ones_like(cells, dtype=torch.int32))
+        pairs = torch.unique(cells * _BITS + photo % _BITS)
+        cells, flag = pairs // _BITS, torch.bitwise_left_shift(torch.ones_like(pairs), pairs % _BITS)
+        new = (self.photos[cells] & flag) == 0  # the pairs are unique: adding a new bit is OR-ing it in
+        self.photos.index_add_(0, cells[new], flag[new])
+
+    def views(self) -> torch.Tensor:
+        """(cells,) int: how many photos (modulo the shared bits) reached each cell seeing through."""
+        return _POPCOUNT.to(self.photos.device)[self.photos.view(torch.uint8).long()].reshape(-1, 8).sum(dim=1)
+
+    def paid_for(self, min_views: int) -> torch.Tensor:
+        """Flat bool: the cells that may stay occupied (not looked through by enough samples of too few photos)."""
+        return (self.samples < MIN_SAMPLES) | (self.views() >= min_views)
+
+
+def record_seen(counts: list, samples: tuple, origins: torch.Tensor, dirs: torch.Tensor, photo: torch.Tensor) -> None:
+    """Fold a training step's composited samples (ray index, t, dt, weight; sorted by ray then t) into `counts`."""
+    ray_idx, t, _, w = samples
+    with torch.no_grad():
+        front = exclusive_weight(w.detach(), ray_idx) < 0.5
+        r, t = ray_idx[front], t[front].detach()
+        points = origins[r] + dirs[r] * t[:, None]
+        for c in counts:
+            c.record(points, photo[r])
