@@ -125,6 +125,12 @@ def test_an_object_cut_out_by_its_masks_trains_loads_extracts_and_renders_transp
     assert bpy.ops.nerf_deform.extract_mesh() == {"FINISHED"}
     verts = np.array([v.co[:] for v in nerf.nerf_deform.surface.data.vertices])
     assert len(verts) > 100 and np.abs(np.linalg.norm(verts, axis=1) - 0.8).mean() < 0.15
+    bpy.context.view_layer.objects.active = nerf
+    assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}  # around the object alone: no region, no cut
+    from blender_nerf_deform.addon.data.cage_store import load_cage
+
+    rest, _ = load_cage(nerf.nerf_deform.cage.data)
+    assert np.linalg.norm(rest, axis=1).max() < 1.6
     cam_data = bpy.data.cameras.new("Camera")
     camera = bpy.data.objects.new("Camera", cam_data)
     bpy.context.scene.collection.objects.link(camera)

@@ -121,6 +121,9 @@ def main() -> int:
     ap.add_argument("--error-rays", type=float, default=None,
                     help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)")
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
+    ap.add_argument("--train-every", type=int, default=1,
+                    help="train on every K-th of the training views only: a sparser capture of the same scene, "
+                         "validated and held out on the same views")
     ap.add_argument("--pictures", help="with --final: write each held-out photo beside its final render here (PNG)")
     ap.add_argument("--masks", default="auto", choices=("auto", "object", "ignore"),
                     help="what the dataset's masks mean (default auto: decided by their shape)")
@@ -143,7 +146,8 @@ def main() -> int:
         print(f"masks: {ds.mask_meaning} ({ds.mask_reason})", file=sys.stderr)
     val_idx, held_out = split_views(len(ds))
     final_idx = held_out if args.final else []
-    train = ds.subset([i for i in range(len(ds)) if i not in final_idx and (args.train_val or i not in val_idx)])
+    train_idx = [i for i in range(len(ds)) if i not in final_idx and (args.train_val or i not in val_idx)]
+    train = ds.subset(train_idx[::args.train_every])
     val = ds.subset(val_idx)
     cfg = config_for(ds, args.scene)
     if args.steps_per_diagonal:

@@ -45,10 +45,11 @@ from .model import NerfConfig, NerfModel, resolve_device
 from .lens import camera_directions
 from .renderer import render_image, render_rays
 from .silhouettes import MASK_LABELS, carve
-from .visibility import ViewCounts, record_seen
+from .visibility import model_depth, paid_for, photos_seeing_through
 
 
 OCC_UPDATE_EVERY_PER_GRID = 16
+VISIBILITY_MARKS = (0.3, 0.6)  # fractions of the budget at which free space is judged by the photos seeing through
 ERROR_TILE = 8  # pixels on a side of an error-map tile
 
 
@@ -88,8 +89,8 @@ class TrainOptions:
     refine_poses: bool = False
     pose_lr: float = 1e-4
     pose_start: float = 0.3
-    # Inner cells that rays of fewer training photos than this looked through are never occupied (visibility.py);
-    # 0 or 1: no limit.
+    # Inner cells that fewer training photos than this see through (and at least one) are ruled out
+    # (visibility.py); 0 or 1: no limit.
     min_views: int = 0
 
 
@@ -169,8 +170,10 @@ class Trainer:
         self.n_rays = max(64, min(self.opt.init_rays, 2 * self.opt.target_samples // model.config.steps_per_diagonal))
         self.last = {}
         self.grids = [model.occupancy] + ([model.background] if model.background is not None else [])
-        # Which photos pay for each inner cell's density (visibility.py); the background grid is left alone.
-        self.view_counts = [ViewCounts(model.occupancy)] if self.opt.min_views > 1 else []
+        # When the inner grid's free space is judged by the photos that see through it (visibility.py): once the
+        # geometry has formed, and again once it has sharpened. The background grid is left alone.
+        self.cameras = dataset.cameras
+        self.visibility_marks = list(VISIBILITY_MARKS) if self.opt.min_views > 1 else []
         if dataset.mask_meaning == "object" and not model.unbounded:
             # Object masks: nothing outside the silhouettes' hull is ever occupied.
             grid = model.occupancy
@@ -298,8 +301,6 @@ class Trainer:
             for grid in self.grids:
                 k = int(grid.resolution**3 * self.opt.occ_fraction)
                 grid.update(m.density, step, m.config.occ_threshold, n_uniform=k, n_occupied=k)
-        for counts in self.view_counts:
-            counts.grid.restrict(counts.paid_for(self.opt.min_views))
         m.train(was)
 
     def _optimizer_step(self, lr: float) -> None:
@@ -321,6 +322,10 @@ class Trainer:
         """One optimisation step; returns loss, psnr (of the batch), rays and samples."""
         t_start = time.perf_counter()
         self.model.encoding.fused_grad = self.lazy_table
+        if self.visibility_marks and self.progress_fraction() >= self.visibility_marks[0]:
+            self.visibility_marks.pop(0)
+            counts = photos_seeing_through(self.model.occupancy, self.cameras, lambda c: model_depth(self.model, c))
+            self.model.occupancy.restrict(paid_for(counts, self.opt.min_views))
         self.update_occupancy()
         m = self.model
         m.train()
@@ -332,10 +337,8 @@ class Trainer:
             bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
         codes = m.appearance(images) if m.appearance is not None else None
-        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True,
-                          return_samples=self.distortion > 0 or bool(self.view_counts), appearance=codes)
-        if self.view_counts and out.get("samples") is not None:
-            record_seen(self.view_counts, out["samples"], o, d, images)
+        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0,
+                          appearance=codes)
         squared = (out["rgb"] - tgt) ** 2
         loss = mse = torch.mean(squared)
         if self.distortion > 0 and out.get("samples") is not None:
