@@ -458,4 +458,6 @@ def render(config: dict) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from blender_nerf_deform.engine.errors import run_command  # an error nobody foresaw: one line naming its log
+
+    raise SystemExit(run_command("demo.py", main))

@@ -212,4 +212,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from blender_nerf_deform.engine.errors import run_command  # an error nobody foresaw: one line naming its log
+
+    sys.exit(run_command("make_floor_scene.py", main))

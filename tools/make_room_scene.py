@@ -440,4 +440,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from blender_nerf_deform.engine.errors import run_command  # an error nobody foresaw: one line naming its log
+
+    raise SystemExit(run_command("make_room_scene.py", main))

@@ -8,13 +8,15 @@ The engine has no OpenVDB; this writes each baked frame as the add-on's Bake Vol
 (addon/export/volume_file.py): grids `density` (per unit length: the NeRF's density divided by
 --scale, the world units per NeRF unit of where the volume will sit; default 1) and `color`
 (scene-linear: the NeRF's sRGB decoded), the grids' transform from the voxel indices to the
-NeRF's frame. OUT_DIR/<name>.vdb per IN file; every input is read and checked before the first
-file is written.
+NeRF's frame. OUT_DIR/<name>.vdb per IN file. Every input is read and checked (its arrays' types,
+shapes, values and memory) before the first file is written; the files take their place together
+at the end (a run that fails leaves OUT_DIR as it was), and only OpenVDB files are replaced.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -32,31 +34,43 @@ def main(argv=None) -> int:
     p.add_argument("--scale", type=float, default=1.0, help="world units per NeRF unit (default 1)")
     args = p.parse_args(argv)
 
+    from blender_nerf_deform.engine.errors import run_command
+
+    return run_command("vdb_from_npz.py", lambda: convert(args.source, args.out, args.scale))
+
+
+def convert(source: Path, out: Path, scale: float) -> None:
     import numpy as np
 
     from blender_nerf_deform.addon.data.images import srgb_to_linear
-    from blender_nerf_deform.addon.export.volume_file import VolumeFileError, write_vdb
+    from blender_nerf_deform.addon.export.volume_file import VolumeFileError, check_vdb_replaceable, write_vdb
     from blender_nerf_deform.engine.bend.baked_volume import load_baked
     from blender_nerf_deform.engine.errors import EngineError
+    from blender_nerf_deform.engine.files import StagedFiles, check_writable
 
-    files = sorted(args.source.glob("*.npz")) if args.source.is_dir() else [args.source]
+    if not (math.isfinite(scale) and scale > 0):
+        raise EngineError(f"--scale must be a positive number, got {scale}")
+    if not source.exists():
+        raise EngineError(f"{source} does not exist")
+    files = sorted(f for f in source.glob("*.npz") if f.is_file()) if source.is_dir() else [source]
     if not files:
-        print(f"error: {args.source} holds no .npz files", file=sys.stderr)
-        return 2
-    if not (args.scale > 0 and np.isfinite(args.scale)):
-        print(f"error: --scale must be a positive number, got {args.scale}", file=sys.stderr)
-        return 2
+        raise EngineError(f"{source} holds no .npz files")
+    check_writable(out, folder=True)
+    targets = [out / f"{f.stem}.vdb" for f in files]
     try:
+        for target in targets:
+            check_vdb_replaceable(target)
         baked = [load_baked(f) for f in files]
-        args.out.mkdir(parents=True, exist_ok=True)
-        for f, b in zip(files, baked):
-            write_vdb(args.out / f"{f.stem}.vdb", b.grid.shape, b.grid.index_to_nerf, b.index, b.density / args.scale,
-                      srgb_to_linear(np.clip(b.color, 0.0, 1.0)))
-            print(f"{f} -> {args.out / (f.stem + '.vdb')}: {len(b.index)} voxels")
-    except (EngineError, VolumeFileError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+        with StagedFiles() as staged:
+            if not out.is_dir():
+                staged.make_folder(out)
+            for f, b, target in zip(files, baked, targets):
+                write_vdb(staged.temporary(target), b.grid.shape, b.grid.index_to_nerf, b.index, b.density / scale,
+                          srgb_to_linear(np.clip(b.color, 0.0, 1.0)), where=str(f))
+                print(f"{f} -> {target}: {len(b.index)} voxels")
+            staged.commit()
+    except VolumeFileError as exc:
+        raise EngineError(str(exc)) from None
 
 
 if __name__ == "__main__":

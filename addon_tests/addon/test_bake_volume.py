@@ -65,8 +65,10 @@ def test_baked_volume_renders_in_cycles_as_the_nerf_deform_engine_renders_it(add
 
     scene.frame_set(1)
     volume = api.bake_volume(nerf, str(tmp_path / "vdb"), resolution=96, frames=(1, 2))
-    stem = nerf.name.replace(" ", "_")
-    assert sorted(os.listdir(tmp_path / "vdb")) == [f"{stem}_0001.vdb", f"{stem}_0002.vdb"]  # no staging folder left
+    from blender_nerf_deform.addon.export.bake_volume import volume_file_stem
+
+    stem = volume_file_stem(nerf.name)
+    assert sorted(os.listdir(tmp_path / "vdb")) == [f"{stem}_0001.vdb", f"{stem}_0002.vdb"]  # no temporary file left
     assert volume.parent == nerf and volume.data.is_sequence and scene.frame_current == 1
     assert volume.data.materials[0].name == "NeRF Volume (Emission-Absorption)"
 
@@ -220,7 +222,9 @@ def test_bad_bakes_say_what_is_wrong_and_leave_nothing_behind(addon, sphere_nerf
     assert scene.frame_current == 1 and not out.exists()
     # A NeRF without a cage bakes its rest pose.
     volume = api.bake_volume(nerf, str(out), resolution=16)
-    assert volume.parent == nerf and (out / f"{nerf.name.replace(' ', '_')}_0001.vdb").is_file()
+    from blender_nerf_deform.addon.export.bake_volume import volume_file_name
+
+    assert volume.parent == nerf and (out / volume_file_name(nerf.name, 1)).is_file()
 
 
 def test_the_command_lines_npz_become_vdb_files_blender_reads(addon, sphere_nerf, tmp_path):

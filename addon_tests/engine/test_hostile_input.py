@@ -253,6 +253,49 @@ def _extract_in(base, tmp, region, *extra):
 UNIT_REGION = {"center": [0, 0, 0], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}
 
 
+def _bake(base, tmp, *extra, out="vol"):
+    return ["bake-volume", "--nerf", base["ckpt"], "--out", tmp / out, "--resolution", "16", "--device", "cpu", *extra]
+
+
+def _pose_file(base, tmp, name, scale=1.0, shift=0.0) -> Path:
+    np.save(tmp / name, np.load(base["rest"]) * scale + shift)
+    return tmp / name
+
+
+def _poses_folder(base, tmp, *scales) -> Path:
+    """A folder of poses p1.npy, p2.npy, ...: the rest cage scaled by each of `scales`."""
+    folder = tmp / "poses"
+    folder.mkdir()
+    for k, scale in enumerate(scales, 1):
+        np.save(folder / f"p{k}.npy", np.load(base["rest"]) * scale)
+    return folder
+
+
+def _bake_two_poses_past(base, tmp, name, folder=False):
+    """Two poses baked into `tmp`/vol, where `name` is taken beforehand: by a folder, or a file of the user's."""
+    path = tmp / "vol" / name
+    path.parent.mkdir()
+    if folder:
+        path.mkdir()
+    else:
+        path.write_text("notes")
+    return _bake(base, tmp, "--cage", base["cage"], "--deformed", _poses_folder(base, tmp, 1.0, 1.1))
+
+
+def _bake_into_a_file(base, tmp):
+    (tmp / "vol").write_text("notes")
+    return _bake(base, tmp)
+
+
+def _photos(tmp, sizes) -> Path:
+    """Photos a.png, b.png, ... of these sizes, in `tmp`/photos."""
+    folder = tmp / "photos"
+    folder.mkdir()
+    for name, size in zip("abcdefgh", sizes):
+        Image.new("RGB", size, (90, 120, 150)).save(folder / f"{name}.png")
+    return folder
+
+
 def _collapsed_pose(base, tmp):
     np.save(tmp / "collapsed.npy", np.zeros_like(np.load(base["rest"])))
     return tmp / "collapsed.npy"
@@ -333,6 +376,39 @@ CASES = {
                                         ("--pick", "nan"), ["m.ply"]),
     "cage --region not JSON": lambda b, t: (_cage_cmd(b, t, None, "--region", _region_file(t, "[1, 2")),
                                             ("region.json", "not valid JSON"), ["cage.npz"]),
+    # --- the volume path (issue 51): huge poses, boxes too small for OpenVDB's voxels, what is in the way
+    "bake-volume pose of huge coordinates (extent cage)": lambda b, t: (
+        _bake(b, t, "--cage", b["cage"], "--deformed", _pose_file(b, t, "huge.npy", 1e300), "--extent", "cage"),
+        ("huge.npy", "vertex 0", "1e+09"), ["vol"]),
+    "bake-volume pose of 1e20 coordinates": lambda b, t: (
+        _bake(b, t, "--cage", b["cage"], "--deformed", _pose_file(b, t, "far.npy", 1.0, 1e20)), ("far.npy", "1e+09"), ["vol"]),
+    "bake-volume second pose of huge coordinates": lambda b, t: (
+        _bake(b, t, "--cage", b["cage"], "--deformed", _poses_folder(b, t, 1.0, 1e200)), ("p2.npy", "1e+09"), ["vol"]),
+    "render pose of huge coordinates": lambda b, t: (_bent(b, t, b["cage"], _pose_file(b, t, "huge.npy", 1e300)),
+                                                    ("huge.npy", "1e+09"), ["frames"]),
+    "cage of huge coordinates": lambda b, t: (_bent(b, t, _cage_file(t, vertices=np.load(b["rest"]) * 1e15,
+                                                                      tets=_cage_arrays(b)["tets"])),
+                                              ("bad_cage.npz", "1e+09"), ["frames"]),
+    "bake-volume region too small for one voxel": lambda b, t: (
+        _bake(b, t, "--region", _region_file(t, {**UNIT_REGION, "size": [1e-6, 1e-6, 2e-6]})),
+        ("1e-06 x 1e-06 x 2e-06", "too small for one voxel"), ["vol"]),
+    "bake-volume region of voxels below OpenVDB's": lambda b, t: (
+        _bake(b, t, "--region", _region_file(t, {**UNIT_REGION, "size": [1e-3, 5e-4, 5e-4]}), "--resolution", "256"),
+        ("resolution 256", "at most 50"), ["vol"]),
+    "bake-volume region of a NaN size": lambda b, t: (
+        _bake(b, t, "--region", _region_file(t, '{"center": [0, 0, 0], "size": [NaN, 1, 1], "rotation_euler": [0, 0, 0]}')),
+        ("region.json", "`size` must be finite"), ["vol"]),
+    "bake-volume a folder where the second volume goes": lambda b, t: (
+        _bake_two_poses_past(b, t, "p2.npz", folder=True), ("p2.npz", "it is a folder"), ["vol/p1.npz"]),
+    "bake-volume a file of the user's where a volume goes": lambda b, t: (
+        _bake_two_poses_past(b, t, "p1.npz"), ("p1.npz", "is not a baked volume", "left alone"), ["vol/p2.npz"]),
+    "bake-volume --out is a file": lambda b, t: (_bake_into_a_file(b, t), ("vol", "not a folder"), []),
+    "prepare whose first photo has another size": lambda b, t: (
+        ["prepare", "--images", _photos(t, [(48, 32), (32, 32), (32, 32), (32, 32)]), "--out", t / "dataset"],
+        ("a.png is 48x32", "3 of the 4 photos are 32x32"), ["dataset"]),
+    "prepare with photos of three sizes": lambda b, t: (
+        ["prepare", "--images", _photos(t, [(32, 32), (32, 32), (40, 30), (32, 32), (30, 40)]), "--out", t / "dataset"],
+        ("c.png is 40x30", "e.png is 30x40", "3 of the 5 photos are 32x32"), ["dataset"]),
     # --- unclear messages before
     "cage npz of random bytes": lambda b, t: (_bent(b, t, _random_cage(t)), ("random.npz", "not a cage file"), ["frames"]),
     "collapsed pose": lambda b, t: (_bent(b, t, b["cage"], _collapsed_pose(b, t)), ("collapsed.npy", "collapsed the cage"), ["frames"]),
@@ -661,3 +737,80 @@ print("ok")
 def test_kernels_survive_non_finite_and_out_of_range_coordinates():
     proc = subprocess.run([sys.executable, "-c", _KERNELS_ON_NAN], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", f"exit {proc.returncode}\n{proc.stderr[-3000:]}"
+
+
+# --------------------------------------------------- all or nothing, and errors nobody foresaw
+
+_SECOND_BAKE_FAILS = """
+import sys
+from blender_nerf_deform.engine.bend import posed
+
+bake, calls = posed.PosedRenderer.bake, []
+
+def bake_then_fail(self, *args, **kwargs):  # a bug in the second pose's bake, put in on purpose
+    calls.append(1)
+    if len(calls) == 2:
+        raise ZeroDivisionError("a bug in the second bake")
+    return bake(self, *args, **kwargs)
+
+posed.PosedRenderer.bake = bake_then_fail
+from blender_nerf_deform.engine.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_bake_failing_at_its_second_pose_leaves_nothing_and_names_the_log_of_its_traceback(base, tmp_path):
+    """The first pose's file is not left, an earlier bake it would have replaced stays as it was, the folders
+    the run made go, and the error nobody foresaw is one line naming a log file that holds its traceback."""
+    vol = tmp_path / "vol"
+    vol.mkdir()
+    earlier = _pose_file(base, tmp_path, "earlier.npy", shift=0.3)  # another pose: other bytes than p1's
+    proc = _run(*_bake(base, tmp_path, "--cage", base["cage"], "--deformed", earlier))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    before = (vol / "earlier.npz").read_bytes()
+    (vol / "earlier.npz").rename(vol / "p1.npz")
+    (vol / "notes.txt").write_text("mine")
+    poses = _poses_folder(base, tmp_path, 1.0, 1.1)
+    logs = tmp_path / "logs"
+    for out in ("vol", "new/sub"):
+        proc = subprocess.run([sys.executable, "-c", _SECOND_BAKE_FAILS, *map(str, _bake(base, tmp_path, "--cage", base["cage"],
+                              "--deformed", poses, out=out))], cwd=REPO, capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "NERF_DEFORM_LOG_DIR": str(logs)})
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+        errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and "bake-volume: unexpected error (ZeroDivisionError: a bug in the second bake)" in errors[0]
+        log = Path(errors[0].split("its traceback is in ", 1)[1].split(": please report it")[0])
+        assert log.parent == logs and "Traceback (most recent call last)" in log.read_text()
+    assert _files(vol) == {"p1.npz", "notes.txt"} and (vol / "p1.npz").read_bytes() == before
+    assert not (tmp_path / "new").exists()
+    proc = _run(*_bake(base, tmp_path, "--cage", base["cage"], "--deformed", poses))  # an earlier bake is replaced
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert _files(vol) == {"p1.npz", "p2.npz", "notes.txt"} and (vol / "p1.npz").read_bytes() != before
+
+
+def test_staged_files_take_their_places_together_or_not_at_all(tmp_path):
+    from blender_nerf_deform.engine.errors import EngineError
+    from blender_nerf_deform.engine.files import StagedFiles
+
+    (tmp_path / "a").write_text("old a")
+    with StagedFiles() as staged:
+        staged.write(tmp_path / "a", lambda f: f.write(b"new a"))
+        staged.write(tmp_path / "made" / "b", lambda f: f.write(b"new b"))
+        (tmp_path / "c").write_text("in the way")
+        staged.temporary(tmp_path / "c").write_bytes(b"new c")
+        (tmp_path / "c").unlink()
+        (tmp_path / "c").mkdir()  # a folder took c's place meanwhile: c cannot be replaced
+        (tmp_path / "c" / "x").write_text("x")
+        with pytest.raises(EngineError, match="cannot write .*c"):
+            staged.commit()
+    assert (tmp_path / "a").read_text() == "old a" and not (tmp_path / "made").exists()
+    assert _files(tmp_path) == {"a", "c", "c/x"}  # no temporary file, no backup left
+    with StagedFiles() as staged:
+        staged.write(tmp_path / "a", lambda f: f.write(b"new a"))
+        staged.write(tmp_path / "made" / "b", lambda f: f.write(b"new b"))
+        staged.commit()
+    assert (tmp_path / "a").read_text() == "new a" and (tmp_path / "made" / "b").read_text() == "new b"
+    with pytest.raises(KeyboardInterrupt), StagedFiles() as staged:  # Ctrl-C before the commit: nothing moves
+        staged.write(tmp_path / "a", lambda f: f.write(b"newer a"))
+        raise KeyboardInterrupt
+    assert (tmp_path / "a").read_text() == "new a" and _files(tmp_path) == {"a", "c", "c/x", "made", "made/b"}

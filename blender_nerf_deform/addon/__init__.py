@@ -11,6 +11,7 @@ import atexit
 
 from .capture import operators as capture_operators
 from .data import properties
+from .data.guards import guard_classes
 from .deform import handles, live_preview
 from .edit import cage, extract, load_nerf, pick, regions
 from .export import bake_volume
@@ -28,6 +29,7 @@ _modules = (properties, worker_setup, capture_operators, train_operators, traini
 
 def register():
     for module in _modules:
+        guard_classes(getattr(module, "_classes", ()))  # an error nobody foresaw: one report, no traceback
         module.register()
     # The bpy module of Blender 4.2 and 4.5 runs Blender's exit (which disables add-ons, in 4.5)
     # only once Python frees `bpy`, after atexit; a worker reader thread still holding callbacks

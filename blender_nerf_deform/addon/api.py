@@ -26,6 +26,7 @@ import numpy as np
 from mathutils import Euler, Vector
 
 from .data.properties import owning_nerf
+from .export.bake_volume import volume_of
 
 
 def _run(operator, what: str, **kwargs):
@@ -237,4 +238,4 @@ def bake_volume(nerf, folder: str, resolution: int = 256, extent: str = "NERF", 
         start, end = frames
         kwargs.update(frames="RANGE", frame_start=int(start), frame_end=int(end))
     _run(bpy.ops.nerf_deform.bake_volume, "Bake Volume", **kwargs)
-    return bpy.data.objects[f"{nerf.name} Volume"]
+    return volume_of(nerf)

@@ -3,6 +3,8 @@
 - `atomic_write`: a temporary file beside the target, flushed, then renamed over it; a full
   disk or a read-only folder is one EngineError naming the file, and Ctrl-C waits until the
   rename is done (a second Ctrl-C during the final checkpoint must not lose it).
+- `StagedFiles`: several files written as one (a bake's frames): all of them take their place at
+  the end, or none does, and the files they would have replaced stay as they were.
 - `check_writable`: probe an output's folder before minutes of work go into it.
 - `folder_lock`: one process at a time in a run folder (fcntl.flock: the kernel releases it
   when its process dies, so a crash never leaves a lock that blocks the next run).
@@ -19,8 +21,6 @@ import tempfile
 import threading
 from pathlib import Path
 from typing import BinaryIO, Callable
-
-import numpy as np
 
 from .errors import EngineError
 
@@ -86,11 +86,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> 
                 write(f)
                 f.flush()
                 os.fsync(f.fileno())
-            try:
-                mode = path.stat().st_mode & 0o7777  # replacing a file keeps its permissions
-            except FileNotFoundError:
-                mode = 0o666 & ~_UMASK
-            os.chmod(tmp, mode)
+            os.chmod(tmp, _mode_for(path))  # replacing a file keeps its permissions
             os.replace(tmp, path)
         except BaseException as exc:
             try:
@@ -102,14 +98,141 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> 
             raise
 
 
-def write_png_rgba(path, rgba: np.ndarray) -> None:
-    """Write an (H, W, 4) float straight-alpha image as an 8-bit RGBA PNG, atomically."""
-    from PIL import Image
+def _mode_for(path: Path) -> int:
+    """The permissions a file written at `path` gets: those of the file it replaces, else a plain open()'s."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        return 0o666 & ~_UMASK
 
-    arr = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    # zlib level 1: Pillow's default (6) spent 0.07 s of a one-frame `render` (270x480 fox); Blender too
-    # saves PNGs lightly compressed by default (compression 15 of 100).
-    atomic_write(path, lambda f: Image.fromarray(arr, mode="RGBA").save(f, format="PNG", compress_level=1))
+
+class StagedFiles:
+    """Several files written as one (a bake's frames, a conversion's files). Each is written to a
+    temporary file beside its target; `commit` moves them all into place at the end. Leaving the
+    `with` block without `commit` (an error of any kind, Ctrl-C, a cancel) or `discard` removes the
+    temporary files and the folders this made: the targets stay as they were, whether they existed
+    or not. A target that cannot be replaced during `commit` puts back the ones moved before it.
+
+        with StagedFiles() as staged:
+            staged.write(folder / "a.npz", lambda f: np.savez(f, ...))   # through a file object
+            writer(staged.temporary(folder / "b.vdb"))                   # or by a writer that takes a path
+            staged.commit()
+    """
+
+    def __init__(self):
+        self._staged: dict[Path, Path] = {}  # target -> its temporary file
+        self._made: list[Path] = []  # folders this made, deepest first
+        self.committed = False
+
+    def __enter__(self) -> "StagedFiles":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if not self.committed:
+            self.discard()
+
+    def make_folder(self, folder) -> Path:
+        """`folder` and its missing parents, made now and removed again by `discard` when still empty."""
+        folder = Path(folder)
+        missing = [d for d in (folder, *folder.parents) if not d.exists() and not d.is_symlink()]
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise write_error(folder, exc) from None
+        self._made = missing + self._made
+        return folder
+
+    def temporary(self, target) -> Path:
+        """A new temporary file beside `target` (its folder made when missing), which `commit` moves to
+        `target`; the caller writes it."""
+        target = Path(target)
+        if "\0" in str(target):
+            raise EngineError(f"output path {str(target)!r} holds a NUL byte")
+        if target in self._staged:
+            raise EngineError(f"{target} would be written twice in one run (two inputs of the same name?)")
+        if target.is_dir():
+            raise EngineError(f"cannot write {target}: it is a folder")
+        if not target.parent.is_dir():
+            self.make_folder(target.parent)
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        except OSError as exc:
+            raise write_error(target, exc) from None
+        os.close(fd)
+        self._staged[target] = Path(tmp)
+        return Path(tmp)
+
+    def write(self, target, write: Callable[[BinaryIO], None]) -> None:
+        """Write the temporary file of `target` through `write(f)`, flushed to disk."""
+        tmp = self.temporary(target)
+        try:
+            with open(tmp, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:
+            raise write_error(target, exc) from None
+
+    def commit(self) -> None:
+        """Move every staged file to its target (replacing what is there); Ctrl-C waits until it is done."""
+        done: list[tuple[Path, Path | None]] = []  # (target moved in, backup of what it replaced)
+        target = None
+        with interrupts_deferred():
+            try:
+                for target, tmp in self._staged.items():
+                    os.chmod(tmp, _mode_for(target))
+                    backup = None
+                    if target.exists() or target.is_symlink():
+                        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+                        os.close(fd)
+                        backup = Path(name)
+                        try:
+                            os.replace(target, backup)
+                        except OSError:
+                            os.unlink(backup)
+                            raise
+                    try:
+                        os.replace(tmp, target)
+                    except OSError:
+                        if backup is not None:
+                            os.replace(backup, target)
+                        raise
+                    done.append((target, backup))
+            except OSError as exc:
+                for moved, backup in reversed(done):  # put back what the run had replaced
+                    try:
+                        if backup is not None:
+                            os.replace(backup, moved)
+                        else:
+                            os.unlink(moved)
+                    except OSError:
+                        pass
+                self.discard()
+                raise write_error(target, exc) from None
+            for _moved, backup in done:
+                if backup is not None:
+                    try:
+                        os.unlink(backup)
+                    except OSError:
+                        pass
+            self._staged.clear()
+            self._made.clear()
+            self.committed = True
+
+    def discard(self) -> None:
+        """Remove every temporary file and the folders this made (those still empty)."""
+        for tmp in self._staged.values():
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+        self._staged.clear()
+        for folder in self._made:
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+        self._made.clear()
 
 
 def _probe_folder(folder: Path, what) -> None:

@@ -23,6 +23,13 @@ and would then read freed memory. Writes delete the old property first: in
 bpy 5.0.1 assigning an array of another length over an existing ID-property
 array corrupts the heap (and fTetWild's vertex count differs on every build).
 
+What is read back is checked once, where it is read (`load_cage`, `load_embedding`, `cage_pins`):
+each property's type (an array of integers or numbers, not text or a list), its length against the
+mesh, every index against what it indexes (tets against the cage's vertices, the embedding's tets
+against the cage's tets), finite values. Damage (a script, a broken file, another add-on) is one
+CageDataError naming the object, what is wrong and the repair (Build Cage again), never a numpy
+traceback, and never a render or preview that carries on as if nothing were wrong.
+
 Each stored cage and embedding also carries its content key (the worker
 session's name for it, `protocol.content_key` of the arrays as sent), so a
 frame or a preview update tells the worker which cage it means without reading,
@@ -37,6 +44,7 @@ import numpy as np
 
 from ...engine.errors import EngineError
 from ...engine.geometry.barycentric import boundary_faces
+from ...engine.geometry.poses import MAX_COORDINATE
 from ...engine.geometry.cage_refine import separate_regions as separate_cage_regions, shared_vertices
 from ...engine.service.protocol import content_key
 from .mesh_attributes import part_labels, set_part_labels, vertex_group_members, vertex_group_weights
@@ -52,6 +60,8 @@ EMBED_CONTENT_KEY = "nerf_deform_embed_key"
 CUT_PINS_KEY = "nerf_deform_cut_pins"
 CUT_PIN_GROUP = "NeRF Cut Pin"
 _computed_keys: dict[tuple, str] = {}  # keys of data stored without one, by (datablock, property)
+_checked: set[tuple] = set()  # stored data checked whole this session, by datablock, property, key and length
+REPAIR = "select its NeRF and run Build Cage again"
 
 
 def _set_property(idblock, name: str, value) -> None:
@@ -99,20 +109,72 @@ def store_cage(cage_mesh: bpy.types.Mesh, vertices: np.ndarray, tets: np.ndarray
 
 
 def has_cage(cage_mesh: bpy.types.Mesh | None) -> bool:
-    return cage_mesh is not None and REST_KEY in cage_mesh and TETS_KEY in cage_mesh
+    """Whether the mesh holds a NeRF cage, whole or damaged (a damaged one is an error when read, never
+    a render at rest)."""
+    return cage_mesh is not None and (REST_KEY in cage_mesh or TETS_KEY in cage_mesh)
+
+
+def _holder(mesh: bpy.types.Mesh) -> str:
+    """The object(s) that show `mesh`, and the mesh, as an error names them."""
+    users = sorted(o.name for o in bpy.data.objects if o.type == "MESH" and o.data == mesh)
+    return f"'{users[0]}' (mesh '{mesh.name}')" if users else f"mesh '{mesh.name}'"
+
+
+def damaged(mesh: bpy.types.Mesh, what: str) -> CageDataError:
+    return CageDataError(f"the NeRF data stored in {_holder(mesh)} is damaged: {what}; {REPAIR}")
+
+
+def _described(value) -> str:
+    if value is None:
+        return "missing"
+    if isinstance(value, str):
+        return f"text {value[:40]!r}"
+    if isinstance(value, (int, float)):
+        return f"the single number {value!r}"
+    return f"a {type(value).__name__}"
+
+
+def _stored_array(mesh: bpy.types.Mesh, key: str, what: str, integers: bool, row: int) -> np.ndarray:
+    """The ID-property array `key` of `mesh` as int64 or float64 rows of `row` values (a copy), or the
+    CageDataError that says how it is damaged."""
+    value = mesh.get(key)
+    typecode = getattr(value, "typecode", None)  # an ID-property array: "i" integers, "d"/"f" floats, "b" bools
+    if typecode is None or (integers and typecode != "i") or (not integers and typecode not in "dfi"):
+        kind = "integers" if integers else "numbers"
+        shown = _described(value) if typecode is None else f"an array of {'floats' if typecode in 'df' else 'booleans'}"
+        raise damaged(mesh, f"its {what} ({key}) is {shown}, not an array of {kind}")
+    array = np.array(value, dtype=np.int64 if integers else np.float64)  # copies (module docstring)
+    if array.ndim != 1 or len(array) % row:
+        raise damaged(mesh, f"its {what} ({key}) hold {array.size} values, not whole rows of {row}")
+    return array.reshape(-1, row) if row > 1 else array
 
 
 def load_cage(cage_mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """(rest vertices (N,3) float64, tets (M,4) int64) as stored; checks they still match the mesh."""
-    if not has_cage(cage_mesh):
-        raise CageDataError(f"mesh '{cage_mesh.name}' holds no NeRF cage: run Build Cage")
-    rest = np.array(cage_mesh[REST_KEY], dtype=np.float64).reshape(-1, 3)  # copies (module docstring)
-    tets = np.array(cage_mesh[TETS_KEY], dtype=np.int64).reshape(-1, 4)
+    """(rest vertices (N,3) float64, tets (M,4) int64) as stored, checked (module docstring)."""
+    if cage_mesh is None or not has_cage(cage_mesh):
+        raise CageDataError(f"mesh '{getattr(cage_mesh, 'name', None)}' holds no NeRF cage: run Build Cage")
+    rest = _stored_array(cage_mesh, REST_KEY, "rest vertices", integers=False, row=3)
+    tets = _stored_array(cage_mesh, TETS_KEY, "tets", integers=True, row=4)
     if len(cage_mesh.vertices) != len(rest):
         raise CageDataError(
             f"cage mesh '{cage_mesh.name}' has {len(cage_mesh.vertices)} vertices but its cage has {len(rest)}: "
             "its vertices were added or deleted in Edit Mode; rebuild the cage (Build Cage)"
         )
+    bad = np.flatnonzero(~(np.isfinite(rest) & (np.abs(rest) <= MAX_COORDINATE)).all(axis=1))
+    if len(bad):
+        raise damaged(cage_mesh, f"rest vertex {bad[0]} of its cage is {rest[bad[0]].tolist()}, not a finite point "
+                                 f"within {MAX_COORDINATE:g} NeRF units ({len(bad)} of {len(rest)} vertices are not)")
+    if not len(tets):
+        raise damaged(cage_mesh, "its cage has no tets")
+    out = np.flatnonzero(((tets < 0) | (tets >= len(rest))).any(axis=1))
+    if len(out):
+        raise damaged(cage_mesh, f"tet {out[0]} of its cage names vertices {tets[out[0]].tolist()}, outside the "
+                                 f"cage's 0..{len(rest) - 1} ({len(out)} of {len(tets)} tets do)")
+    ordered = np.sort(tets, axis=1)
+    repeated = np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))
+    if len(repeated):
+        raise damaged(cage_mesh, f"tet {repeated[0]} of its cage names a vertex twice ({tets[repeated[0]].tolist()}; "
+                                 f"{len(repeated)} of {len(tets)} tets do)")
     return rest, tets
 
 
@@ -170,13 +232,13 @@ def cage_pins(cage_object: bpy.types.Object) -> np.ndarray:
     mesh = cage_object.data
     if CUT_PINS_KEY not in mesh:
         return np.zeros(0, dtype=np.int64)
-    pins = np.array(mesh[CUT_PINS_KEY], dtype=np.int64)  # copies (module docstring)
+    pins = _stored_array(mesh, CUT_PINS_KEY, "cage vertices pinned at the cut", integers=True, row=1)
     if len(pins) and (pins.min() < 0 or pins.max() >= len(mesh.vertices)):
         raise CageDataError(
             f"cage mesh '{mesh.name}' has {len(mesh.vertices)} vertices but its pins at the cut index up to {pins.max()}: "
             "rebuild the cage (Build Cage)"
         )
-    return pins
+    return np.unique(pins)
 
 
 def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
@@ -230,17 +292,39 @@ def store_embedding(mesh: bpy.types.Mesh, tet_ids: np.ndarray, weights: np.ndarr
     _set_property(mesh, EMBED_CONTENT_KEY, content_key(tet_ids.astype(np.int64), weights))
 
 
-def load_embedding(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """(tet id per vertex (V,), weights (V,4)) as stored; checks they still match the mesh."""
+def stored_tet_count(cage_mesh: bpy.types.Mesh) -> int | None:
+    """How many tets the stored cage has, read without loading it (None when it holds no tets array)."""
+    tets = cage_mesh.get(TETS_KEY) if cage_mesh is not None else None
+    return len(tets) // 4 if getattr(tets, "typecode", None) == "i" else None
+
+
+def load_embedding(mesh: bpy.types.Mesh, n_tets: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(tet id per vertex (V,), weights (V,4)) as stored, checked (module docstring); with `n_tets`, the
+    tet count of the cage it is embedded in, every tet id against it."""
     if EMBED_TET_KEY not in mesh or EMBED_WEIGHTS_KEY not in mesh:
         raise CageDataError(f"mesh '{mesh.name}' is not embedded in a cage: run Build Cage")
-    if mesh.get(EMBED_COUNT_KEY) != len(mesh.vertices):
+    count = mesh.get(EMBED_COUNT_KEY)
+    if not isinstance(count, int) or isinstance(count, bool):
+        raise damaged(mesh, f"its embedding's vertex count ({EMBED_COUNT_KEY}) is {_described(count)}, not a whole number")
+    if count != len(mesh.vertices):
         raise CageDataError(
-            f"mesh '{mesh.name}' has {len(mesh.vertices)} vertices but was embedded with {mesh.get(EMBED_COUNT_KEY)}: "
+            f"mesh '{mesh.name}' has {len(mesh.vertices)} vertices but was embedded with {count}: "
             "rebuild the cage (Build Cage)"
         )
-    tet_ids = np.array(mesh[EMBED_TET_KEY], dtype=np.int64)  # copies (module docstring)
-    weights = np.array(mesh[EMBED_WEIGHTS_KEY], dtype=np.float64).reshape(-1, 4)
+    tet_ids = _stored_array(mesh, EMBED_TET_KEY, "embedding's tets", integers=True, row=1)
+    weights = _stored_array(mesh, EMBED_WEIGHTS_KEY, "embedding's weights", integers=False, row=4)
+    if len(tet_ids) != count or len(weights) != count:
+        raise damaged(mesh, f"its embedding has {len(tet_ids)} tets and {len(weights)} weight rows for its {count} vertices")
+    limit = n_tets if n_tets is not None else np.iinfo(np.int32).max
+    out = np.flatnonzero((tet_ids < 0) | (tet_ids >= limit))
+    if len(out):
+        where = f"its cage's 0..{n_tets - 1}" if n_tets is not None else "any cage"
+        raise damaged(mesh, f"vertex {out[0]} is embedded in tet {tet_ids[out[0]]}, outside {where} "
+                            f"({len(out)} of {count} vertices are)")
+    bad = np.flatnonzero(~np.isfinite(weights).all(axis=1) | (np.abs(weights.sum(axis=1) - 1.0) > 1e-3))
+    if len(bad):
+        raise damaged(mesh, f"the embedding weights of vertex {bad[0]} are {weights[bad[0]].tolist()}, not finite "
+                            f"barycentric weights summing to 1 ({len(bad)} of {count} vertices' are not)")
     return tet_ids, weights
 
 
@@ -256,20 +340,44 @@ def _stored_key(idblock, name: str, load) -> str:
     return _computed_keys[cache_key]
 
 
+def _fingerprint(value) -> tuple:
+    """What tells one stored value from another cheaply: its type, length and, for an array, the sum of its
+    words (read in place, about 0.2 ms a megabyte: no copy, no hash), which any change of a value alters."""
+    typecode = getattr(value, "typecode", None)
+    if typecode is None:
+        return (type(value).__name__, value if isinstance(value, (str, int, float)) else None)
+    words = np.frombuffer(value, dtype=np.uint8)
+    if words.size % 4 == 0:
+        words = words.view(np.uint32)
+    return typecode, words.size, int(words.sum(dtype=np.uint64))
+
+
+def _checked_once(idblock, name: str, load, against=None) -> None:
+    """Run `load` (which checks everything it reads) once for each content of the datablock's stored data:
+    what the worker is sent by key alone, without reading it, is checked as if it were read."""
+    keys = (name, REST_KEY, TETS_KEY, CUT_PINS_KEY, EMBED_TET_KEY, EMBED_WEIGHTS_KEY, EMBED_COUNT_KEY)
+    mark = (idblock.session_uid, name, against, len(idblock.vertices), *(_fingerprint(idblock.get(k)) for k in keys))
+    if mark not in _checked:
+        load(idblock)
+        if len(_checked) > 1000:  # a long session of rebuilds: what was checked before is checked again
+            _checked.clear()
+        _checked.add(mark)
+
+
 def shared_cage(cage_mesh: bpy.types.Mesh) -> tuple[str, callable]:
     """The rest cage as worker-session content: (key, loader of its arrays); loaded only when sent."""
+    _checked_once(cage_mesh, CAGE_CONTENT_KEY, load_cage)
     key = _stored_key(cage_mesh, CAGE_CONTENT_KEY, load_cage)
-    if len(cage_mesh.vertices) * 3 != len(cage_mesh[REST_KEY]):
-        load_cage(cage_mesh)  # raises the error that says what changed
     return key, lambda: dict(zip(("vertices", "tets"), load_cage(cage_mesh)))
 
 
-def shared_embedding(mesh: bpy.types.Mesh) -> tuple[str, callable]:
-    """The surface's embedding as worker-session content: (key, loader of its arrays)."""
-    if EMBED_TET_KEY not in mesh or mesh.get(EMBED_COUNT_KEY) != len(mesh.vertices):
-        load_embedding(mesh)  # raises the error that says what is wrong
+def shared_embedding(mesh: bpy.types.Mesh, cage_mesh: bpy.types.Mesh | None = None) -> tuple[str, callable]:
+    """The surface's embedding as worker-session content: (key, loader of its arrays); with `cage_mesh`,
+    checked against that cage's tets."""
+    n_tets = stored_tet_count(cage_mesh) if cage_mesh is not None else None
+    _checked_once(mesh, EMBED_CONTENT_KEY, lambda m: load_embedding(m, n_tets), against=n_tets)
     key = _stored_key(mesh, EMBED_CONTENT_KEY, load_embedding)
-    return key, lambda: dict(zip(("tet_ids", "weights"), load_embedding(mesh)))
+    return key, lambda: dict(zip(("tet_ids", "weights"), load_embedding(mesh, n_tets)))
 
 
 def separate_regions(nerf: bpy.types.Object) -> list[tuple[str, str]]:
@@ -291,10 +399,8 @@ def separate_regions(nerf: bpy.types.Object) -> list[tuple[str, str]]:
     regions = [members.get(h.nerf_deform.region, np.zeros(0, np.int64)) for h in handles]
     pinned = members.get(PIN_GROUP, np.zeros(0, np.int64))
     rest, tets = load_cage(cage.data)
-    tet_ids, weights = load_embedding(surface.data)
+    tet_ids, weights = load_embedding(surface.data, len(tets))
     pins = cage_pins(cage)
-    if len(tet_ids) and (tet_ids.min() < 0 or tet_ids.max() >= len(tets)):
-        return [("WARNING", f"{surface.name}'s embedding names tets outside {cage.name}: run Build Cage again")]
     if not len(shared_vertices(tets, tet_ids, weights, regions, pinned, pins)):
         return []
     if cage.data.shape_keys is not None or cage.modifiers:

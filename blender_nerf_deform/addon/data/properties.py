@@ -26,6 +26,7 @@ from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
 
 from ...engine.nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
+from .guards import guarded
 
 
 class CageDataError(ValueError):
@@ -279,17 +280,18 @@ def _handlers():
 
 
 def add_app_handlers(pairs) -> None:
-    """Append each (bpy.app.handlers list, function) of `pairs`, once (a module's register)."""
+    """Append each (bpy.app.handlers list, function) of `pairs`, once (a module's register), guarded: an
+    error nobody foresaw is one console line naming its log file (data/guards.py)."""
     for handlers, fn in pairs:
-        if fn not in handlers:
-            handlers.append(fn)
+        if guarded(fn) not in handlers:
+            handlers.append(guarded(fn))
 
 
 def remove_app_handlers(pairs) -> None:
     """Remove what `add_app_handlers` appended (a module's unregister; absent ones are fine)."""
     for handlers, fn in pairs:
-        if fn in handlers:
-            handlers.remove(fn)
+        if guarded(fn) in handlers:
+            handlers.remove(guarded(fn))
 
 
 def register():

@@ -17,8 +17,8 @@ from mathutils import Matrix
 
 from ..data.cage_store import separate_regions
 from ..data.mesh_attributes import part_labels
-from ..data.properties import (OnNeRF, PIN_GROUP, add_app_handlers, alive, handles_of, owning_nerf, remove_app_handlers,
-                         select_only, to_nerf_frame)
+from ..data.properties import (OnNeRF, PIN_GROUP, PlacementError, add_app_handlers, alive, handles_of, owning_nerf,
+                               remove_app_handlers, select_only, to_nerf_frame)
 
 
 def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
@@ -92,8 +92,16 @@ def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=No
         handle = handle.evaluated_get(depsgraph)
     if to_nerf is None:
         to_nerf = to_nerf_frame(nerf, (nerf.evaluated_get(depsgraph) if depsgraph is not None else nerf).matrix_world)
-    rest = Matrix(np.reshape(handle.nerf_deform.rest_matrix, (4, 4)).tolist())
-    return np.array(to_nerf @ handle.matrix_world @ rest.inverted_safe())
+    rest = np.reshape(handle.nerf_deform.rest_matrix, (4, 4))
+    if not np.isfinite(rest).all():
+        raise PlacementError(f"handle '{handle.name}': its rest matrix (stored when it was made) is damaged "
+                             f"({rest[:3, 3].tolist()}); remove the handle and add it again")
+    world = np.array(handle.matrix_world)
+    if not np.isfinite(world).all():
+        location = ", ".join(f"{x:g}" for x in world[:3, 3])
+        raise PlacementError(f"handle '{handle.name}' has a non-finite transform (location {location}): give it a "
+                             "finite location, rotation and scale (its keyframes, drivers or constraints too)")
+    return np.array(to_nerf @ handle.matrix_world @ Matrix(rest.tolist()).inverted_safe())
 
 
 def _surface_of(context) -> tuple[bpy.types.Object | None, bpy.types.Object | None]:

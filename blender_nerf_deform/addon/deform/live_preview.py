@@ -29,6 +29,7 @@ import numpy as np
 
 from ...engine.geometry.embedding import Embedding
 from ..data.cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
+from ..data.guards import say_once
 from ..data.properties import PREVIEW_KEY, add_app_handlers, remove_app_handlers, settings
 from ..worker import jobs
 from ..worker.client import WorkerError
@@ -38,10 +39,18 @@ _updating = False
 _rendering = False  # between render_init and render_complete / render_cancel
 _last_pose: dict[str, bytes] = {}
 _solvers: dict[str, AsyncSolver] = {}
+_said: set[str] = set()
+
+
+def _say(message: str) -> None:
+    """Print a preview's problem once until it changes (the handler runs on every update)."""
+    if message not in _said:
+        _said.add(message)
+        print(message)
 
 
 def surface_embedding(surface: bpy.types.Object, tets: np.ndarray) -> Embedding:
-    tet_ids, weights = load_embedding(surface.data)
+    tet_ids, weights = load_embedding(surface.data, len(tets))
     return Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=weights, n_outside=0)
 
 
@@ -131,7 +140,10 @@ def update_all(depsgraph) -> None:
                         _solve_in_background(nerf, depsgraph)
                     continue
             except (CageDataError, WorkerError) as error:
-                print(f"NeRF Deform preview of {nerf.name}: {error}")
+                _say(f"NeRF Deform preview of {nerf.name}: {error}")
+                continue
+            except Exception as error:  # one NeRF's unforeseen error: said once, the others still previewed
+                say_once(f"NeRF Deform preview of {nerf.name}", error)
                 continue
             pose = positions.astype(np.float32).tobytes()
             if _last_pose.get(nerf.name) == pose:
@@ -180,4 +192,5 @@ def unregister():
     remove_app_handlers(_handlers())
     _rendering = False
     _last_pose.clear()
+    _said.clear()
     _solvers.clear()

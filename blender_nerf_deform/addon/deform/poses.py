@@ -45,7 +45,7 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
     }
     shared = {
         "cage": shared_cage(s.cage.data),
-        "embedding": shared_embedding(surface.data),
+        "embedding": shared_embedding(surface.data, s.cage.data),
         "regions": (content_key(*region_arrays.values()), lambda: region_arrays),
     }
     return pose, shared

@@ -4,10 +4,17 @@ meshes and shadows, and other applications read it.
 
 Each frame is one worker request (`bake_volume`, with the same pose a render sends: handles, the
 modifier-deformed cage, or rest), answered with the voxels that hold anything; `volume_file`
-writes them. The files go to a folder of their own while the bake runs and move to the output
-folder only when every frame is done: Esc or an error leaves the output folder as it was (a
-previous bake included), and the scene unchanged. `<NeRF>_<frame>.vdb`, four digits, so Blender
-reads a range as a sequence; a frame's file is the same bytes whichever process baked it, so a
+writes them. All or nothing: every frame's file is written to a temporary file beside its place
+(engine/files.py, StagedFiles), and they take their places together when every frame is done;
+Esc, an error of any kind, or the NeRF deleted or renamed meanwhile leave the output folder as it
+was (a previous bake included, no folder made) and the frame shown restored. Before any work, each
+frame's file must be free or this NeRF's own earlier bake (its grids name their NeRF): a folder
+there, another NeRF's bake or anything else is left alone, with an error saying so.
+
+`<NeRF>_<frame>.vdb`, four digits, so Blender reads a range as a sequence. <NeRF> is the object's
+name where a file name can keep it whole (letters, digits, spaces, `-_.`); otherwise the characters
+it cannot keep become `_` and a short hash of the exact name follows, so two objects never share a
+file ("Statue/A" and "Statue_A"). A frame's file is the same bytes whichever process baked it, so a
 farm can bake ranges in parallel (`-s/-e` with `api.bake_volume`).
 
 Units: the grids' transform is in the NeRF's frame and the Volume object is a child of the NeRF
@@ -18,29 +25,38 @@ scene-linear (the NeRF's sRGB colours decoded), as Blender's renders are.
 
 from __future__ import annotations
 
-import os
-import shutil
+import hashlib
 from pathlib import Path
 
 import bpy
 import numpy as np
 
+from ...engine.bend.baked_volume import MAX_RESOLUTION
+from ...engine.errors import EngineError
+from ...engine.files import StagedFiles
 from ...engine.memory import available_memory, gib
 from ..data.cage_store import has_cage, load_cage
 from ..data.images import srgb_to_linear
-from ..data.properties import VOLUME_EXTENTS, VOLUME_FRAMES, VOLUME_SHADINGS, OnNeRF, alive, alive_object, owning_nerf
+from ..data.properties import VOLUME_EXTENTS, VOLUME_FRAMES, VOLUME_SHADINGS, OnNeRF, alive, is_deleted, owning_nerf
 from ..edit.regions import region_dict, regions_of
 from ..render.frame import nerf_pose, render_warnings
 from ..worker.jobs import WorkerOperator, WorkerRequest
-from .volume_file import VolumeFileError, openvdb_module, write_vdb
+from .volume_file import VolumeFileError, check_vdb_replaceable, openvdb_module, write_vdb
 from .volume_material import volume_material
 
-MAX_RESOLUTION = 2048
+
+def volume_file_stem(nerf_name: str) -> str:
+    """The file-name part of a NeRF's volumes: its name when a file name keeps it whole, else the name
+    with `_` for what a file name cannot keep, and a hash of the exact name (never two NeRFs alike)."""
+    safe = "".join(c if c.isalnum() or c in "-_. " else "_" for c in nerf_name)
+    if safe == nerf_name and safe.strip(" .") == safe and safe:
+        return safe
+    digest = hashlib.sha1(nerf_name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
+    return f"{safe.strip(' .') or 'NeRF'}-{digest}"
 
 
 def volume_file_name(nerf_name: str, frame: int) -> str:
-    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in nerf_name)
-    return f"{safe}_{frame:04d}.vdb"
+    return f"{volume_file_stem(nerf_name)}_{frame:04d}.vdb"
 
 
 def world_scale(matrix_world) -> float:
@@ -67,50 +83,74 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
     extent: bpy.props.EnumProperty(name="Box", items=VOLUME_EXTENTS, default="NERF")
     region: bpy.props.StringProperty(name="Region", default="", description="The edit region to bake (Box: Edit Region)")
     frames: bpy.props.EnumProperty(name="Frames", items=VOLUME_FRAMES, default="CURRENT")
-    frame_start: bpy.props.IntProperty(name="Start", default=1, description="First frame of the range (Frames: Frame Range)")
-    frame_end: bpy.props.IntProperty(name="End", default=250, description="Last frame of the range (Frames: Frame Range)")
+    frame_start: bpy.props.IntProperty(name="Start", default=1,
+                                       description="First frame of the range (Frames: Frame Range); default the scene's")
+    frame_end: bpy.props.IntProperty(name="End", default=250,
+                                     description="Last frame of the range (Frames: Frame Range); default the scene's")
     shading: bpy.props.EnumProperty(name="Material", items=VOLUME_SHADINGS, default="EMISSION")
     supersample: bpy.props.IntProperty(name="Supersample", default=1, min=1, max=4,
                                        description="Points averaged per voxel along each axis (1: its centre)")
 
-    def invoke(self, context, event):
-        scene = context.scene
-        if not self.properties.is_property_set("frame_start"):
-            self.frame_start = scene.frame_start
-        if not self.properties.is_property_set("frame_end"):
-            self.frame_end = scene.frame_end
-        return super().invoke(context, event)
-
-    # The chain: one request per frame; apply stores the frame and asks for the next.
+    # The chain: one request per frame; apply stages the frame's file and asks for the next.
     def request(self, context):
-        self._nerf = owning_nerf(context.active_object)
+        nerf = owning_nerf(context.active_object)
+        self._nerf_name, self._nerf_uid = nerf.name, nerf.session_uid
         if not 1 <= self.resolution <= MAX_RESOLUTION:
             raise ValueError(f"the resolution must be from 1 to {MAX_RESOLUTION} voxels along the box's longest side, "
                              f"got {self.resolution}")
         scene = context.scene
         if self.frames == "RANGE":
+            # Unset (a script's call), the range is the scene's, as the Frame Range panel shows it.
+            if not self.properties.is_property_set("frame_start"):
+                self.frame_start = scene.frame_start
+            if not self.properties.is_property_set("frame_end"):
+                self.frame_end = scene.frame_end
             if self.frame_end < self.frame_start:
                 raise ValueError(f"the frame range ends ({self.frame_end}) before it starts ({self.frame_start})")
             self._frames = list(range(self.frame_start, self.frame_end + 1))
         else:
             self._frames = [scene.frame_current]
-        self._frame_before = scene.frame_current
-        self._region = self._chosen_region(self._nerf) if self.extent == "REGION" else None
+        self._region = self._chosen_region(nerf) if self.extent == "REGION" else None
         if not self.directory or (self.directory.startswith("//") and not bpy.data.filepath):
             raise ValueError("save the .blend first, or give the bake an absolute folder: // is the .blend's folder")
         self._out = Path(bpy.path.abspath(self.directory))
         self._check_memory()
         openvdb_module()  # no OpenVDB: say so before any work
-        self._created_out = not self._out.exists()
-        try:
-            self._out.mkdir(parents=True, exist_ok=True)
-            self._staging = Path(_make_staging(self._out))
-        except OSError as exc:
-            raise ValueError(f"cannot write to {self._out}: {exc.strerror or exc}") from None
-        self._written: list[tuple[int, str]] = []
+        self._targets = {frame: self._out / volume_file_name(nerf.name, frame) for frame in self._frames}
+        self._check_output()
+        self._staged = StagedFiles()
+        self._frame_before = scene.frame_current
+        self._written: list[int] = []
         self._warnings: list[str] = []
         self._next = 0
         return self._frame_request(context)
+
+    def _check_output(self) -> None:
+        """Every frame's file must be free or this NeRF's own earlier bake, and the folder writable."""
+        if self._out.exists() and not self._out.is_dir():
+            raise ValueError(f"cannot write to {self._out}: it is a file, not a folder")
+        existing = self._out
+        while not existing.exists() and existing.parent != existing:
+            existing = existing.parent
+        if not existing.is_dir():
+            raise ValueError(f"cannot write to {self._out}: {existing} is not a folder")
+        try:
+            for target in self._targets.values():
+                check_vdb_replaceable(target, owner=self._nerf_name)
+        except VolumeFileError as error:
+            raise ValueError(str(error)) from None
+
+    def _nerf(self) -> bpy.types.Object:
+        """The NeRF being baked; ValueError when it was deleted or renamed since the bake started (its
+        files are named after it)."""
+        obj = bpy.data.objects.get(self._nerf_name)
+        if obj is not None and obj.session_uid == self._nerf_uid and not is_deleted(obj):
+            return obj
+        renamed = next((o for o in bpy.data.objects if o.session_uid == self._nerf_uid and not is_deleted(o)), None)
+        if renamed is not None:
+            raise ValueError(f"NeRF object '{self._nerf_name}' was renamed to '{renamed.name}' while it was baked; "
+                             "nothing was written: bake it again")
+        raise ValueError(f"NeRF object '{self._nerf_name}' was deleted while it was baked; nothing was written")
 
     def _chosen_region(self, nerf) -> dict:
         regions = regions_of(nerf)
@@ -143,24 +183,29 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
 
     def _frame_request(self, context) -> WorkerRequest:
         frame = self._frames[self._next]
-        scene = context.scene
-        scene.frame_set(frame)
-        depsgraph = context.evaluated_depsgraph_get()
-        posed = nerf_pose(depsgraph, self._nerf)
-        extent: object = "nerf"
-        if self.extent == "REGION":
-            extent = self._region
-        elif self.extent == "CAGE":
-            extent = "cage" if posed.params["pose"]["kind"] != "rest" else self._rest_cage_box()
-        self._scale = world_scale(self._nerf.evaluated_get(depsgraph).matrix_world)
+        self.current_request = None  # a frame that cannot be posed is reported as itself, not the one before
+        try:
+            scene = context.scene
+            scene.frame_set(frame)  # its handlers, drivers and scripts may delete or rename the NeRF
+            nerf = self._nerf()
+            depsgraph = context.evaluated_depsgraph_get()
+            posed = nerf_pose(depsgraph, nerf)
+            extent: object = "nerf"
+            if self.extent == "REGION":
+                extent = self._region
+            elif self.extent == "CAGE":
+                extent = "cage" if posed.params["pose"]["kind"] != "rest" else self._rest_cage_box(nerf)
+            self._scale = world_scale(nerf.evaluated_get(depsgraph).matrix_world)
+        except ValueError as error:
+            raise ValueError(f"frame {frame}: {error}") from None
         params = {**posed.params, "extent": extent, "resolution": self.resolution, "supersample": self.supersample}
         stage = f"frame {frame} ({self._next + 1} of {len(self._frames)})" if len(self._frames) > 1 else f"frame {frame}"
         return WorkerRequest("bake_volume", params, posed.arrays, stage, posed.shared)
 
-    def _rest_cage_box(self) -> dict:
-        cage = alive(self._nerf.nerf_deform.cage)
+    def _rest_cage_box(self, nerf) -> dict:
+        cage = alive(nerf.nerf_deform.cage)
         if cage is None or not has_cage(cage.data):
-            raise ValueError(f"{self._nerf.name} has no cage: build one, or bake the NeRF's box or an edit region")
+            raise ValueError(f"{nerf.name} has no cage: build one, or bake the NeRF's box or an edit region")
         vertices, _tets = load_cage(cage.data)
         lo, hi = vertices.min(0), vertices.max(0)
         return {"center": [float(x) for x in 0.5 * (lo + hi)], "size": [float(x) for x in hi - lo],
@@ -168,17 +213,16 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
 
     def apply(self, context, result, arrays):
         frame = self._frames[self._next]
-        if not alive_object(self._nerf):
-            return self._fail(ValueError("the NeRF was deleted while it was baked"))
-        self._warnings.extend(render_warnings(self._nerf.name, frame, result))
-        name = volume_file_name(self._nerf.name, frame)
-        index_to_nerf = np.asarray(result["index_to_nerf"], dtype=np.float64)
         try:
-            write_vdb(self._staging / name, result["shape"], index_to_nerf, arrays["index"],
-                      arrays["density"] / self._scale, srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)))
-        except VolumeFileError as error:
+            self._nerf()
+            self._warnings.extend(render_warnings(self._nerf_name, frame, result))
+            write_vdb(self._staged.temporary(self._targets[frame]), result["shape"],
+                      np.asarray(result["index_to_nerf"], dtype=np.float64), arrays["index"],
+                      arrays["density"] / self._scale, srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)),
+                      where=f"frame {frame}", owner=self._nerf_name)
+        except (ValueError, EngineError) as error:  # VolumeFileError is a ValueError
             return self._fail(error)
-        self._written.append((frame, name))
+        self._written.append(frame)
         print(f"{self.bl_label}: frame {frame}: {result['active_voxels']} voxels, {result['seconds']:.1f} s")
         self._next += 1
         if self._next < len(self._frames):
@@ -189,12 +233,14 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         return self._finish_bake(context)
 
     def _finish_bake(self, context) -> set[str]:
-        for _frame, name in self._written:
-            os.replace(self._staging / name, self._out / name)
-        shutil.rmtree(self._staging, ignore_errors=True)
+        try:
+            nerf = self._nerf()
+            self._staged.commit()
+        except (ValueError, EngineError) as error:
+            return self._fail(error)
         context.scene.frame_set(self._frame_before)
-        volume = volume_object(context, self._nerf, self._out / self._written[0][1], [f for f, _ in self._written],
-                               self.shading)
+        first = self._targets[self._written[0]]
+        volume = volume_object(context, nerf, first, self._written, self.shading)
         for line in self._warnings:
             self.report({"WARNING"}, line)
         self.report({"INFO"}, f"{volume.name}: baked {len(self._written)} frame{'s' if len(self._written) > 1 else ''} "
@@ -209,23 +255,23 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         self._abandon()
 
     def _abandon(self) -> None:
-        """Nothing of a bake that did not finish stays: its folder of finished frames goes, the frame
-        shown comes back."""
-        staging = getattr(self, "_staging", None)
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
-            self._staging = None
-            if getattr(self, "_created_out", False) and not any(self._out.iterdir()):
-                self._out.rmdir()
+        """Nothing of a bake that did not finish stays: its staged files (and any folder it made) go, the
+        frame shown comes back."""
+        staged = getattr(self, "_staged", None)
+        if staged is not None:
+            staged.discard()
+            self._staged = None
         before = getattr(self, "_frame_before", None)
         if before is not None and bpy.context.scene.frame_current != before:
             bpy.context.scene.frame_set(before)
 
 
-def _make_staging(out: Path) -> str:
-    import tempfile
-
-    return tempfile.mkdtemp(prefix=".baking-", dir=out)
+def volume_of(nerf) -> bpy.types.Object | None:
+    """The Volume object an earlier bake made for `nerf` (a child of it named after it), if any."""
+    name = f"{nerf.name} Volume"
+    mine = [o for o in nerf.children if o.type == "VOLUME" and o.library is None and o.name.startswith(name)
+            and not is_deleted(o)]
+    return min(mine, key=lambda o: (o.name != name, o.name)) if mine else None
 
 
 def volume_object(context, nerf, first_file: Path, frames: list[int], shading: str) -> bpy.types.Object:
@@ -233,8 +279,8 @@ def volume_object(context, nerf, first_file: Path, frames: list[int], shading: s
     a child of the NeRF with no offset, with the material `shading` asks for; the NeRF's own render
     hidden from other engines' renders is left to the artist."""
     name = f"{nerf.name} Volume"
-    obj = bpy.data.objects.get(name)
-    if obj is None or obj.type != "VOLUME" or obj.library is not None:
+    obj = volume_of(nerf)  # an object of that name that is not this NeRF's volume is left alone
+    if obj is None:
         volume = bpy.data.volumes.new(name)
         obj = bpy.data.objects.new(name, volume)
         for collection in nerf.users_collection:

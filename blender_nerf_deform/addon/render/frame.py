@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
+from ...engine.errors import unexpected_error
 from ...engine.service.protocol import content_key
 from ..data.camera import CameraError, Pinhole, pinhole_from_blender
 from ..data.depth_compositing import HIT_ALPHA, NO_HIT_DEPTH, composite_by_depth
@@ -185,4 +186,7 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
         # Name the NeRF at fault when there are several (its checkpoint, its cage).
         where = f"{current.name}: " if current is not None and len(nerfs) > 1 and not isinstance(error, CameraError) else ""
         frame.error = f"NeRF Deform: {where}{error}"
+    except Exception:  # a bug: the frame fails with one line naming the log of its traceback
+        what = f"{current.name}, frame {scene.frame_current}" if current is not None else f"frame {scene.frame_current}"
+        frame.error = f"NeRF Deform: {unexpected_error(what)}"
     return frame

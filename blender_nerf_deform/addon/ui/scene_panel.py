@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import bpy
 
-from ..data.cage_store import EMBED_COUNT_KEY, EMBED_TET_KEY, TETS_KEY, has_cage
+from ..data.cage_store import EMBED_COUNT_KEY, EMBED_TET_KEY, has_cage, stored_tet_count
 from ..edit.regions import edit_regions_of, extracted_regions, regions_of, same_regions
 
 
@@ -52,8 +52,10 @@ def nerf_status(nerf: bpy.types.Object, view_layer: bpy.types.ViewLayer) -> dict
         "stale": [],
     }
     if cage is not None and cage.type == "MESH" and has_cage(cage.data):
-        status["cage_tets"] = len(cage.data[TETS_KEY]) // 4
+        status["cage_tets"] = stored_tet_count(cage.data) or 0
         status["cage_pieces"] = max(1, len(extracted_regions(surface))) if surface is not None else 1
+        if not status["cage_tets"]:
+            status["stale"].append("the stored cage is damaged: Build Cage again")
     if surface is not None and not same_regions(extracted_regions(surface), edit_regions_of(nerf)):
         status["stale"].append("regions changed since the mesh was extracted: Extract Mesh again")
     if surface is not None and status["cage_tets"] and (
@@ -61,7 +63,7 @@ def nerf_status(nerf: bpy.types.Object, view_layer: bpy.types.ViewLayer) -> dict
         status["stale"].append("the mesh changed since the cage was built: Build Cage again")
     if surface is None and cage is None:
         status["stale"].append("no mesh yet: Extract Mesh, then Build Cage")
-    elif status["cage_tets"] == 0:
+    elif status["cage_tets"] == 0 and not status["stale"]:
         status["stale"].append("no cage yet: Build Cage")
     return status
 

@@ -46,6 +46,7 @@ from typing import Callable
 import numpy as np
 
 from ...engine.service.protocol import ProtocolError, read_message, write_message
+from ..data.guards import call_guarded
 
 # The extension's package folder and its name (`blender_nerf_deform`, whatever
 # `bl_ext.<repo>.` prefix Blender gives the module); the worker imports the
@@ -427,12 +428,14 @@ class WorkerClient:
                     continue
             except Exception as error:  # the content could not be loaded again (or the worker died): fail this request
                 header = {"type": "error", "kind": getattr(error, "kind", "input"), "message": str(error)}
+            # Guarded: a callback's error nobody foresaw is said once, and the next messages still run.
+            where = "NeRF Deform: an answer of the worker"
             if kind == "progress" and request.on_progress:
-                request.on_progress(header["fraction"], header.get("message", ""))
+                call_guarded(where, request.on_progress, header["fraction"], header.get("message", ""))
             elif kind == "result" and request.on_done:
-                request.on_done(header["result"], arrays)
+                call_guarded(where, request.on_done, header["result"], arrays)
             elif kind == "error" and request.on_error:
-                request.on_error(_error_from(header))
+                call_guarded(where, request.on_error, _error_from(header))
 
     def call(
         self,
@@ -523,7 +526,7 @@ def adopt_client(client: WorkerClient | None) -> None:
 def _drain_timer() -> float | None:
     if _client is None:
         return None
-    _client.drain()
+    call_guarded("NeRF Deform: the worker's answers", _client.drain)
     # Keeps running while a client exists: answers can arrive at any time.
     return _DRAIN_BUSY_S if _client.busy else _DRAIN_IDLE_S
 

@@ -135,9 +135,22 @@ class WorkerOperator:
 
     def _finish(self, context):
         wm = context.window_manager
-        wm.event_timer_remove(self._timer)
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
         wm.progress_end()
-        context.workspace.status_text_set(None)
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+
+    def clean_up_after_error(self, context) -> None:
+        """What an error nobody foresaw leaves to undo (data/guards.py calls it): the modal timer and the
+        status text, the job still running in the worker, and what the chain's stages left (`abandon`)."""
+        if self._timer is not None:
+            self._finish(context)
+        client = getattr(self, "_client", None)
+        if client is not None and self._job_id is not None and getattr(self, "_state", {}).get("done") is None:
+            client.cancel(self._job_id)
+        self.abandon(context)
 
     def modal(self, context, event):
         client = self._client
@@ -156,11 +169,7 @@ class WorkerOperator:
         if kind == "error":
             self._finish(context)
             return self._fail(payload)
-        try:
-            answer = self.apply(context, payload, out)
-        except BaseException:
-            self._finish(context)  # no timer or status text left behind
-            raise
+        answer = self.apply(context, payload, out)  # an error here: clean_up_after_error (data/guards.py)
         if not isinstance(answer, WorkerRequest):
             self._finish(context)
             return answer

@@ -54,6 +54,7 @@ from ..errors import EngineError
 from ..geometry.barycentric import (deformed_to_rest_affines, inversion_from_det, inversion_report, tet_inverses,
                                    tet_matrices)
 from ..geometry.locate import TetLocator
+from ..geometry.poses import check_coordinates
 from ..nerf.occupancy import OccupancyGrid
 from . import bend_kernels
 
@@ -140,6 +141,9 @@ class CageBend:
     def set_deformed(self, deformed_vertices) -> "CageBend":
         """Prepare the map for one pose (same vertex order and tets as the rest cage)."""
         deformed = np.asarray(deformed_vertices, dtype=np.float64)
+        if deformed.shape != self.rest_vertices.shape:
+            raise EngineError(f"the posed cage has {deformed.shape} vertices, the rest cage {self.rest_vertices.shape}")
+        check_coordinates(deformed, "the posed cage")  # what a solve or a file gave, before a kernel reads it
         affine, rotation, forward, self.inversion = self._pose_tets(deformed)
         bad = np.unique(np.r_[self.inversion.degenerate, np.flatnonzero(~np.isfinite(affine).all(axis=(1, 2)))])
         if len(bad):

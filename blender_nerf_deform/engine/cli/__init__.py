@@ -4,7 +4,9 @@ A public interface (docs/ARCHITECTURE.md): scripts, render farms and the project
 benchmarks call it, so the commands and options below stay stable. One module
 per command (cli/<command>.py) turns the parsed options into calls of the
 stage functions, the same ones the worker serves; it is imported only when its
-command runs, so that `--help` never loads torch.
+command runs, so that `--help` never loads torch. Bad input is one `error:` line
+and exit status 2; an error nobody foresaw is one `error:` line too (exit 1),
+naming the log file that holds its traceback.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import argparse
 import importlib
 import sys
 
-from ..errors import EngineError
+from ..errors import EngineError, run_command
 
 PROG = "python -m blender_nerf_deform.engine"
 DATA_HELP = ("dataset: a transforms.json (instant-ngp, nerfstudio or NeRF-synthetic) or its folder; an LLFF folder "
@@ -177,11 +179,4 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return args.handler(args) or 0
-    except EngineError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    return run_command(args.command, lambda: args.handler(args))

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import EngineError
 from .deform import affine_region, regions_to_cage
+from .poses import MAX_COORDINATE
 from .surface_arap import SurfaceArap
 
 
@@ -45,10 +46,29 @@ class RegionDeformer:
         self.cage_regions = regions[: self.n_handles]
         self.precompute_s = 0.0
 
+    @staticmethod
+    def _checked(name: str, transform) -> np.ndarray:
+        """A handle's 4x4 (or 3x4) transform as float64; EngineError naming the handle when it is not finite
+        or moves its region beyond MAX_COORDINATE."""
+        try:
+            t = np.asarray(transform, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise EngineError(f"handle {name!r}: its transform is not a matrix of numbers") from None
+        if t.shape not in ((4, 4), (3, 4)):
+            raise EngineError(f"handle {name!r}: its transform must be a 4x4 matrix, got shape {t.shape}")
+        if not np.isfinite(t).all():
+            raise EngineError(f"handle {name!r} has a non-finite transform (location {t[:3, 3].tolist()}): "
+                              "give it a finite location, rotation and scale")
+        if np.abs(t[:3]).max() > MAX_COORDINATE:
+            raise EngineError(f"handle {name!r} moves its region beyond {MAX_COORDINATE:g} NeRF units (location "
+                              f"{', '.join(f'{x:.3g}' for x in t[:3, 3])}): bring it back near the NeRF")
+        return t
+
     def solve(self, transforms: list) -> tuple[np.ndarray, dict]:
         """(deformed cage vertices, stats) for one 4x4 transform per handle."""
         if len(transforms) != self.n_handles:
             raise EngineError(f"{len(transforms)} handle transforms for {self.n_handles} handles")
+        transforms = [self._checked(name, t) for name, t in zip(self.names, transforms)]
         if self.mode == "AFFINE":
             deformed = self.rest
             for region, transform in zip(self.cage_regions, transforms):

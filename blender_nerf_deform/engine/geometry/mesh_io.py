@@ -23,6 +23,7 @@ import numpy as np
 
 from ..errors import EngineError
 from ..files import atomic_write
+from .poses import check_coordinates
 
 
 def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
@@ -273,6 +274,7 @@ def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
     if len(bad):
         raise EngineError(f"cage {path}: vertex {bad[0]} has non-finite coordinates {V[bad[0]].tolist()} "
                           f"({len(bad)} of {len(V)} vertices do)")
+    check_coordinates(V, f"cage {path}")
     if len(T) == 0:
         raise EngineError(f"cage {path} has no tets")
     if T.min() < 0 or T.max() >= len(V):

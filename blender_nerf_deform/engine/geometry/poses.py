@@ -16,6 +16,11 @@ import numpy as np
 
 from ..errors import EngineError
 
+# How far from the origin a cage vertex may lie, rest or posed (NeRF units): beyond it the ray bender's
+# float32 maps and a tet's volume (a cube of its size) overflow into inf and NaN, which once reached a
+# float -> int conversion. A billion scene units is no pose anyone meant.
+MAX_COORDINATE = 1e9
+
 
 def _natural_key(path: Path):
     return [(0, int(part), part) if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", path.name)]
@@ -55,7 +60,18 @@ def load_pose(path, vertex_shape: tuple) -> np.ndarray:
     if len(bad):
         raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, but {len(bad)} of its "
                           f"rows hold NaN or inf (first: vertex {bad[0]})")
+    check_coordinates(deformed, f"{path}: deformed vertices")
     return deformed.astype(np.float64)
+
+
+def check_coordinates(vertices: np.ndarray, where: str) -> None:
+    """EngineError naming `where` unless every vertex is finite and within MAX_COORDINATE of the origin."""
+    v = np.asarray(vertices)
+    bad = np.flatnonzero(~(np.isfinite(v) & (np.abs(v) <= MAX_COORDINATE)).all(axis=1)) if v.size else ()
+    if len(bad):
+        first = ", ".join(f"{x:.3g}" for x in np.asarray(v[bad[0]], dtype=np.float64))
+        raise EngineError(f"{where}: vertex {bad[0]} lies at ({first}), not a finite point within {MAX_COORDINATE:g} "
+                          f"NeRF units of the origin ({len(bad)} of {len(v)} vertices do not)")
 
 
 def check_not_collapsed(path, rest_vertices: np.ndarray, deformed: np.ndarray, tets: np.ndarray) -> None:

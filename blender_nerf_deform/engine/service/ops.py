@@ -66,6 +66,7 @@ from ..geometry.deform import split_regions
 from ..geometry.embedding import Embedding, embed_points, embed_points_by_part
 from ..geometry.extract import density_fn_of, extract_nerf_mesh, extract_nerf_regions, first_dense_point
 from ..geometry.handle_pose import RegionDeformer
+from ..geometry.poses import check_coordinates
 from ..geometry.region import region_from_dict
 from ..geometry.surface_map import SurfaceMap
 from ..nerf.camera import Camera
@@ -453,9 +454,10 @@ def _posed(job: Job, model, pose: dict | None):
         if "deformed_vertices" not in job.arrays:
             raise EngineError("a cage pose needs its deformed_vertices")
         deformed = np.asarray(job.arrays["deformed_vertices"], dtype=np.float64)
-        if deformed.shape != cage_arrays["vertices"].shape or not np.isfinite(deformed).all():
-            raise EngineError(f"deformed cage vertices must be finite and of the cage's shape "
-                              f"{cage_arrays['vertices'].shape}, got {deformed.shape}")
+        if deformed.shape != cage_arrays["vertices"].shape:
+            raise EngineError(f"deformed cage vertices must be of the cage's shape {cage_arrays['vertices'].shape}, "
+                              f"got {deformed.shape}")
+        check_coordinates(deformed, "the cage as its modifiers deform it")
     renderer = SESSION.derived("renderer", (id(model), cage_key),
                                lambda: PosedRenderer(model, cage_arrays["vertices"], cage_arrays["tets"]), keep=2)
     return renderer, deformed, stats

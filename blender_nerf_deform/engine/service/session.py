@@ -16,6 +16,7 @@ from collections import OrderedDict
 import numpy as np
 
 from ..errors import EngineError
+from ..geometry.poses import check_coordinates
 from .registry import Job, Missing
 
 # slot → {array name: (dims, kind)}: dims -1 = any length; kind "f" finite float, "i" integer.
@@ -50,6 +51,7 @@ def _validate(slot: str, arrays: dict) -> dict:
     if missing:
         raise EngineError(f"{slot} sent without {', '.join(missing)}")
     if slot == "cage":
+        check_coordinates(out["vertices"], "the rest cage")
         if len(out["tets"]) == 0:
             raise EngineError("the cage has no tets")
         if out["tets"].max() >= len(out["vertices"]):

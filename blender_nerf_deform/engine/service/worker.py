@@ -41,7 +41,7 @@ import threading
 import traceback
 from typing import TYPE_CHECKING, BinaryIO
 
-from ..errors import EngineError
+from ..errors import EngineError, unexpected_error
 from .protocol import ProtocolError, read_message, write_message
 from .registry import HANDLERS, SIDE_OPS, Cancelled, Handler, Job, Missing
 
@@ -134,13 +134,13 @@ class Worker:
             self.send({"type": "error", "id": job.id, "kind": "missing", "message": str(exc), "missing": exc.slots})
         except EngineError as exc:
             self.send({"type": "error", "id": job.id, "kind": "input", "message": str(exc)})
-        except Exception as exc:  # a bug: keep the worker alive, give Blender the traceback
+        except Exception:  # a bug: keep the worker alive; Blender's report names the log file of its traceback
             self.send(
                 {
                     "type": "error",
                     "id": job.id,
                     "kind": "internal",
-                    "message": f"{type(exc).__name__}: {exc}",
+                    "message": unexpected_error(f"the engine worker's {job.op!r} request"),
                     "traceback": traceback.format_exc(),
                 }
             )

@@ -114,6 +114,33 @@ def _small_photos_hint(folder: Path, names: list[str]) -> str:
     return f"; the photos are small ({w}x{h}): if you have them at full size, use those"
 
 
+def check_one_size(folder: Path, names: list[str]) -> None:
+    """EngineError naming the odd photos when the photos differ in size. COLMAP takes them as one camera
+    (SINGLE mode) sized by the first photo by name and skips every photo of another size: an odd first
+    photo registered none of the rest, reported as too little texture or overlap."""
+    from collections import Counter
+
+    from PIL import Image
+
+    sizes = {}
+    for name in names:
+        try:
+            with Image.open(folder / name) as im:  # reads the header only
+                sizes[name] = im.size
+        except Exception:
+            continue  # COLMAP says what it cannot read
+    counts = Counter(sizes.values())
+    if len(counts) < 2:
+        return
+    (w, h), n_common = counts.most_common(1)[0]
+    odd = [name for name, size in sizes.items() if size != (w, h)]
+    shown = ", ".join(f"{name} is {sizes[name][0]}x{sizes[name][1]}" for name in odd[:5])
+    more = f" and {len(odd) - 5} more differ" if len(odd) > 5 else ""
+    raise EngineError(f"--images {folder}: the photos must all have one size (prepare takes them as one camera), but "
+                      f"{shown}{more}, where {n_common} of the {len(sizes)} photos are {w}x{h}: resize those or "
+                      "leave them out")
+
+
 def _place(src: Path, dst: Path) -> None:
     """Hard-link a photo into the dataset (no copy on the same disk), or copy it."""
     try:
@@ -155,6 +182,7 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
     if not max_size >= 64:
         raise EngineError(f"--max-size {max_size}: must be at least 64 pixels")
     names = photos_in(src)
+    check_one_size(src, names)
     if dst.exists() and (not dst.is_dir() or any(dst.iterdir())):
         raise EngineError(f"--out {dst}: exists and is not an empty folder; choose a new one")
     check_writable(dst.parent, folder=True)  # the work folder is made beside the destination
