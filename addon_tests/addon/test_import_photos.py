@@ -64,6 +64,10 @@ def test_too_few_no_or_unmatchable_photos_are_reported_and_leave_no_dataset(addo
     rng = np.random.default_rng(0)
     for k in range(4):
         Image.fromarray(rng.integers(0, 255, (90, 120, 3), dtype=np.uint8)).save(photos / f"n{k}.png")
+    with pytest.raises(RuntimeError, match=r"p0\.png is 40x40, p1\.png is 40x40, where 4 of the 6 photos are 120x90"):
+        bpy.ops.nerf_deform.import_photos(photos=str(photos), steps=10, seconds=0, device="cpu")
+    for k in range(2):
+        (photos / f"p{k}.png").unlink()
     with pytest.raises(RuntimeError, match=r"Import Photos: 1/2 cameras: structure from motion registered") as caught:
         bpy.ops.nerf_deform.import_photos(photos=str(photos), steps=10, seconds=0, device="cpu")
     assert "Traceback" not in str(caught.value) and len(str(caught.value).strip().splitlines()) == 1

@@ -122,9 +122,14 @@ def test_an_object_cut_out_by_its_masks_trains_loads_extracts_and_renders_transp
     nerf = bpy.context.active_object
     lo, hi = np.array(nerf.nerf_deform.aabb[:3]), np.array(nerf.nerf_deform.aabb[3:])
     assert (lo <= -0.8).all() and (hi >= 0.8).all() and (hi - lo).max() < 2.4  # the sphere's box, not the cameras'
+    nerf.nerf_deform.resolution = 128
     assert bpy.ops.nerf_deform.extract_mesh() == {"FINISHED"}
     verts = np.array([v.co[:] for v in nerf.nerf_deform.surface.data.vertices])
-    assert len(verts) > 100 and np.abs(np.linalg.norm(verts, axis=1) - 0.8).mean() < 0.15
+    # On the sphere's shell, and nothing outside it: no fog to cut away (the inside, never seen by a
+    # photo, may hold surfaces of its own, and a short training leaves the shell in pieces).
+    radius = np.linalg.norm(verts, axis=1)
+    assert len(verts) > 100 and np.percentile(radius, 99.9) < 0.95, (len(verts), np.percentile(radius, [50, 99, 99.9]))
+    assert np.percentile(radius, 90) > 0.7, np.percentile(radius, [50, 90])
     bpy.context.view_layer.objects.active = nerf
     assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}  # around the object alone: no region, no cut
     from blender_nerf_deform.addon.data.cage_store import load_cage

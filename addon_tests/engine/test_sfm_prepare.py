@@ -71,6 +71,11 @@ def test_prepare_with_too_few_or_unmatchable_photos_says_so_and_writes_nothing(t
     for k in range(4):  # independent noise: nothing to match between the photos
         Image.fromarray(rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)).save(photos / f"n{k}.png")
     proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data")
+    # Two photos of another size than the rest: named, before any matching.
+    assert proc.returncode == 2 and "p0.png is 40x40, p1.png is 40x40, where 4 of the 6 photos are 160x120" in proc.stderr
+    for k in range(2):
+        (photos / f"p{k}.png").unlink()
+    proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data")
     assert proc.returncode == 2 and "structure from motion registered" in proc.stderr, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
     assert not _colmap_info_lines(proc.stderr), proc.stderr[-2000:]  # COLMAP's warnings only, then the error

@@ -79,8 +79,10 @@ def volume_grid(box: EditRegion, resolution: int) -> VolumeGrid:
         raise EngineError(f"the box to bake ({described} NeRF units) is too small for one voxel: OpenVDB places "
                           f"voxels from {MIN_VOXEL_SIZE:g} NeRF units; bake a larger box")
     voxel = longest / resolution
-    if voxel < MIN_VOXEL_SIZE:
-        most = int(longest / MIN_VOXEL_SIZE * (1 + 1e-9))  # 0.002 / 2e-5 is 99.99999999999999 in floats
+    # A relative slack: a box scaled in Blender arrives through float32 (0.002 as 0.0019999), and the
+    # resolution suggested below must itself pass this test.
+    if voxel < MIN_VOXEL_SIZE * (1 - 1e-6):
+        most = int(longest / MIN_VOXEL_SIZE * (1 + 1e-6))
         raise EngineError(f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
                           f"{voxel:.3g}, smaller than the {MIN_VOXEL_SIZE:g} OpenVDB can place: bake it at a "
                           f"resolution of at most {most}, or a larger box")
