@@ -132,3 +132,11 @@ def read_back(*values) -> list[float]:
         counter.syncs_by_op["read_back"] += 1
     packed = torch.stack([torch.as_tensor(v).detach().reshape(()).to(torch.float64) for v in values])
     return packed.tolist()
+
+
+def to_host(tensor: torch.Tensor) -> torch.Tensor:
+    """A copy of a device tensor in host memory (on CUDA, one sync; counted as one here on any device)."""
+    for counter in _active:
+        counter.syncs += 1
+        counter.syncs_by_op["to_host"] += 1
+    return tensor.detach().cpu()

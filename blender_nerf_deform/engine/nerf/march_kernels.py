@@ -365,6 +365,73 @@ def _march_round_torch(o, d, alive, s: MarchState, k: int, g: Grids, block: int 
     return ts, dts, counts
 
 
+def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box_steps: int,
+                       block: int = 128, bg_per_block: int = 8):
+    """`march_round` without a host-device sync (the device path): up to k next samples of each ray in `alive`
+    whose `active` is True (the others emit none and stay where they are); (t (A, k), dt (A, k), counts (A,)).
+
+    Every loop runs a count fixed on the host: ceil(box_steps / block) blocks of `block` lattice steps (a box
+    segment is at most `box_steps` long, so a ray's box segment ends within one round unless it fills k), each
+    followed by `bg_per_block` background steps; a ray whose background is longer goes on next round. No
+    compaction: rays that are done or full are masked, and samples past the k-th are written to a spare column.
+    The same samples as `march_round` (the same float32 operations in the same order per ray)."""
+    dev = o.device
+    n = alive.shape[0]
+    ts = torch.zeros((n, k + 1), dtype=torch.float32, device=dev)
+    dts = torch.zeros((n, k + 1), dtype=torch.float32, device=dev)
+    counts = torch.zeros(n, dtype=torch.int64, device=dev)
+    offsets = torch.arange(block, device=dev)
+    o_r, d_r = o[alive], d[alive]
+    ph, j, t_bg = s.phase[alive], s.j[alive], s.t[alive]
+    j_end, u = s.j_end[alive], s.u[alive]
+    t_in, t_out, t_far = s.t_in[alive], s.t_out[alive], s.t_far[alive]
+    step = torch.tensor(g.step, dtype=torch.float32, device=dev)
+    after = PHASE_AFTER if g.has_bg else PHASE_DONE
+    for _ in range(max(1, -(-box_steps // block))):
+        inner = active & (ph == PHASE_INNER) & (counts < k)
+        jj = j[:, None] + offsets  # (A, B)
+        valid = (jj < j_end[:, None]) & inner[:, None]
+        t = (jj.float() + u[:, None]) * g.step
+        p = o_r[:, None, :] + d_r[:, None, :] * t[..., None]
+        occ = _inner_occupied_torch(p.reshape(-1, 3), g).reshape(valid.shape) & valid
+        rank = torch.cumsum(occ.long(), dim=1)
+        take = occ & (rank <= (k - counts)[:, None])
+        slot = torch.where(take, counts[:, None] + rank - 1, k)
+        ts.scatter_(1, slot, t)
+        dts.scatter_(1, slot, step.expand(slot.shape))
+        taken = take.sum(dim=1)
+        full = counts + taken >= k
+        # A full ray resumes after its last sample; the others after the block (or at the end).
+        last = torch.where(take, offsets, -1).amax(dim=1)
+        nxt = torch.where(full, j + last + 1, torch.minimum(j + block, j_end))
+        j = torch.where(inner, nxt, j)
+        counts = counts + taken
+        done_box = inner & (nxt >= j_end) & ~full
+        ph = torch.where(done_box, after, ph)
+        if not g.has_bg:
+            continue
+        t_bg = torch.where(done_box, t_out, t_bg)
+        for _ in range(bg_per_block):
+            bg = active & ((ph == PHASE_BEFORE) | (ph == PHASE_AFTER)) & (counts < k)
+            before = ph == PHASE_BEFORE
+            end = torch.where(before, t_in, t_far)
+            over = bg & ~(t_bg < end)
+            ph = torch.where(over, torch.where(before, PHASE_INNER, PHASE_DONE), ph).to(torch.int8)
+            go = bg & ~over
+            dt = g.bg_step * _radius_torch(o_r + d_r * t_bg[:, None], g)
+            t_next = t_bg + dt
+            t_next = torch.where(t_next < end, t_next, end)
+            tsam = t_bg + u * (t_next - t_bg)
+            hit = _bg_occupied_torch(o_r + d_r * tsam[:, None], g) & go
+            slot = torch.where(hit, counts, k)[:, None]
+            ts.scatter_(1, slot, tsam[:, None])
+            dts.scatter_(1, slot, (t_next - t_bg)[:, None])
+            counts = counts + hit
+            t_bg = torch.where(go, t_next, t_bg)
+    s.phase[alive], s.j[alive], s.t[alive] = ph.to(torch.int8), j, t_bg
+    return ts[:, :k], dts[:, :k], counts
+
+
 def march_round(o, d, alive, state: MarchState, k: int, grids: Grids):
     """Up to k next samples of each ray in `alive`: (t (A, k), dt (A, k), counts (A,)); `state` advances."""
     if backend.use_kernels(o.device) and grids.mask.device.type == "cpu":

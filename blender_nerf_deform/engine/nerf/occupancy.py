@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from .. import backend
 from .contraction import contract, inner_units, uncontract
 
 
@@ -75,7 +76,17 @@ class OccupancyGrid:
             self._bounds_of = self.mask
             r = self.resolution
             occ = self.mask.reshape(r, r, r)  # [z, y, x] since flat = x + R y + R^2 z
-            if not bool(occ.any()):
+            if not backend.use_kernels(self.mask.device):
+                # The device path, without reading the mask back: the first and one past the last occupied
+                # index per axis.
+                index = torch.arange(r, device=self.mask.device)
+                per_axis = torch.stack([occ.any(dim=0).any(dim=0), occ.any(dim=0).any(dim=1),
+                                        occ.any(dim=2).any(dim=1)])
+                lo = torch.where(per_axis, index, r).amin(dim=1).to(torch.float32)
+                hi = (torch.where(per_axis, index, -1).amax(dim=1) + 1).to(torch.float32)
+                box = torch.stack([self.aabb[0] + lo * self.cell_size, self.aabb[0] + hi * self.cell_size])
+                self._bounds = torch.where(per_axis.any(), box, self.aabb)
+            elif not bool(occ.any()):
                 self._bounds = self.aabb.clone()
             else:
                 lo, hi = [], []
@@ -141,9 +152,16 @@ class OccupancyGrid:
             idx = torch.arange(n, device=dev)
         else:
             parts = [torch.randint(0, n, (n_uniform or 0,), device=dev)]
-            occ_idx = torch.nonzero(self.mask).flatten()
-            if n_occupied and occ_idx.numel():
-                parts.append(occ_idx[torch.randint(0, occ_idx.numel(), (n_occupied,), device=dev)])
+            if backend.use_kernels(dev):
+                occ_idx = torch.nonzero(self.mask).flatten()
+                if n_occupied and occ_idx.numel():
+                    parts.append(occ_idx[torch.randint(0, occ_idx.numel(), (n_occupied,), device=dev)])
+            elif n_occupied:
+                # The same uniform draw among the occupied cells without reading their number back: the cell
+                # whose running count of occupied cells first exceeds a uniform pick (none occupied: the last).
+                running = torch.cumsum(self.mask, 0)
+                pick = (torch.rand(n_occupied, device=dev, dtype=torch.float64) * running[-1]).long()
+                parts.append(torch.searchsorted(running, pick, right=True).clamp_max(n - 1))
             idx = torch.cat(parts)
         new = torch.empty(idx.shape[0], device=dev)
         for s in range(0, idx.shape[0], chunk):
@@ -172,7 +190,10 @@ class OccupancyGrid:
 
     def _threshold(self, step_size: float, threshold: float) -> None:
         opacity = self.density * step_size
-        self.mask = opacity > min(threshold, float(opacity.mean()))
+        if backend.use_kernels(opacity.device):
+            self.mask = opacity > min(threshold, float(opacity.mean()))
+        else:  # the same, on the device
+            self.mask = opacity > torch.clamp(opacity.mean(), max=threshold)
         if self.allowed is not None:
             self.mask &= self.allowed
         self._bounds = None
@@ -238,8 +259,12 @@ class ContractedGrid(OccupancyGrid):
     def _threshold(self, step_size: float, threshold: float) -> None:
         opacity = self.density * step_size
         shell = self._shell
-        mean = float(opacity[shell].mean()) if bool(shell.any()) else 0.0
-        self.mask = (opacity > min(threshold, mean)) & shell
+        if backend.use_kernels(opacity.device):
+            mean = float(opacity[shell].mean()) if bool(shell.any()) else 0.0
+            self.mask = (opacity > min(threshold, mean)) & shell
+        else:  # the mean over the shell on the device, without reading it back
+            mean = torch.where(shell, opacity, 0.0).sum() / shell.sum().clamp_min(1)
+            self.mask = (opacity > torch.clamp(mean, max=threshold)) & shell
         if self.allowed is not None:
             self.mask &= self.allowed
         self._bounds = None

@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from .. import backend
+from ..launch_count import read_back, to_host
 from ..memory import check_memory
 from . import composite_kernels, march_kernels
 from .camera import Camera  # noqa: F401  (re-exported: renderer.Camera is part of the interface)
@@ -114,6 +115,7 @@ RENDER_PATHS = ("fast", "legacy")
 _render_path = "fast"
 TILE = 32
 FRAME_CHUNK = 1 << 16
+FRAME_CHUNK_CUDA = 1 << 18  # on CUDA a round's cost is its launches: fewer, larger chunks
 FRAME_ROUND_K = (4, 4, 4, 4, 8, 8, 16, 16, 32, 32, 64, 64, 128, 128, 256, 256, 512)
 FRAME_ROUND_BUDGET = 1 << 20
 
@@ -156,7 +158,9 @@ def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyG
     """
     n, dev, step = origins.shape[0], origins.device, grids.step
     u = torch.rand(n, device=dev) if perturb else torch.full((n,), 0.5, device=dev)
-    if occupancy.any():
+    # (The device path does not ask whether any cell is occupied, a read back: with none, the bounds are the
+    # whole box and the march finds no sample.)
+    if not backend.use_kernels(dev) or occupancy.any():
         t_in, t_out = ray_box(origins, dirs, occupancy.bounds())
     else:
         t_in = t_out = torch.zeros(n, device=dev)
@@ -176,8 +180,11 @@ def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyG
         t_far = torch.where(torch.isfinite(t_far), t_far, torch.full_like(t_far, near))
         t_in = torch.where(hit, t_in, t_far)
         t_out = torch.where(hit, t_out, t_far)
-        phase = torch.full((n,), march_kernels.PHASE_BEFORE, dtype=torch.int8, device=dev)
-        phase[~(t_far > near)] = march_kernels.PHASE_DONE
+        if backend.use_kernels(dev):
+            phase = torch.full((n,), march_kernels.PHASE_BEFORE, dtype=torch.int8, device=dev)
+            phase[~(t_far > near)] = march_kernels.PHASE_DONE
+        else:  # the same without boolean indexing (a sync on CUDA)
+            phase = torch.where(t_far > near, march_kernels.PHASE_BEFORE, march_kernels.PHASE_DONE).to(torch.int8)
     else:
         t_far = t_out
         phase = torch.where(hit, march_kernels.PHASE_INNER, march_kernels.PHASE_DONE).to(torch.int8)
@@ -456,11 +463,159 @@ def _render_chunk_frame(model, o, d, occ, step, sample_transform, early_stop_eps
     return color * scale[:, None], alpha * scale, depth * scale, n_density, n_color
 
 
+# The device path (CUDA; the CPU without numba) marches a training batch in one round: a bounded ray's box
+# segment ends within it, and the background gets this many steps (a ray longer than that is cut).
+TRAIN_BG_STEPS = 1024
+
+
+def box_steps(occupancy: OccupancyGrid, step: float) -> int:
+    """A bound on the lattice steps of any ray's segment through the grid's box (its diagonal, plus rounding),
+    known on the host: read from the device once per grid."""
+    cached = occupancy.__dict__.get("_box_steps")
+    if cached is None or cached[0] is not occupancy.aabb or cached[1] != step:
+        lo, hi = (np.asarray(v, dtype=np.float64) for v in occupancy.aabb.reshape(2, 3).tolist())
+        steps = int(np.ceil(np.linalg.norm(hi - lo) / step)) + 2
+        cached = occupancy.__dict__["_box_steps"] = (occupancy.aabb, step, steps)
+    return cached[2]
+
+
+def flat_samples(o, d, alive, ts, dts, counts, size: int):
+    """A round's samples, flat and sorted by ray then t, in `size` slots, sizes known on the host: (row in
+    alive, ray index, t, dt, position, direction, valid, first slot of each row). Slots past the samples'
+    number are not valid (their ray is the last row's, their t a sample of it); samples past `size` are cut."""
+    dev = o.device
+    a_n, k = ts.shape
+    end = torch.cumsum(counts, 0)
+    q = torch.arange(size, device=dev)
+    row = torch.searchsorted(end, q, right=True).clamp_max(max(a_n - 1, 0))
+    first = end - counts
+    slot = (q - first[row]).clamp(0, max(k - 1, 0))
+    valid = q < end[-1] if a_n else torch.zeros(size, dtype=torch.bool, device=dev)
+    ray = alive[row]
+    t = ts[row, slot]
+    return row, ray, t, dts[row, slot], o[ray] + d[ray] * t[:, None], d[ray], valid, first
+
+
+def _segment_exclusive(tau: torch.Tensor, row: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+    """exp(-sum of tau over the earlier samples of the same row); samples sorted by row, `first[row]` the
+    first sample of each row (no count read back, unlike bincount)."""
+    tau64 = tau.double()
+    excl = torch.cumsum(tau64, 0) - tau64
+    return torch.exp(-(excl - excl[first.clamp_max(max(tau.shape[0] - 1, 0))[row]])).to(tau.dtype)
+
+
+def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad,
+                         near, samples_out=None, appearance=None, max_samples=None):
+    """The device path (CUDA; the CPU without numba): what `_render_chunk` and `_render_chunk_frame` compute, with
+    sizes known on the host, so that the host waits for the device once per round at most.
+
+    Frames march in rounds (FRAME_ROUND_K samples per live ray); a round reads back two numbers, its sample
+    count and how many rays march on (`read_back`), and everything else is masks, prefix sums and scatters: the
+    samples the transform drops or that are too faint for colour are masked, not removed. With gradients
+    (training) the whole batch is one round with no read back at all: every ray marched to its end (box
+    segment, TRAIN_BG_STEPS background steps), its samples in `max_samples` slots (default: every sample
+    the march can give); the samples the rays can still see carry the gradient. Counts come back as 0-dim
+    tensors, read with the caller's own (`render_rays`, the trainer)."""
+    n, dev = o.shape[0], o.device
+    rays_grad = grad and sample_transform is None and (o.requires_grad or d.requires_grad)
+    o_rays, d_rays = o, d
+    o, d = o.detach(), d.detach()
+    color, alpha, depth = o.new_zeros(n, 3), o.new_zeros(n), o.new_zeros(n)
+    zero = torch.zeros((), dtype=torch.int64, device=dev)
+    grids = _grids(model, occ, step, background=True)
+    if n == 0:
+        return color, alpha, depth, zero, zero
+    state = march_setup(o, d, occ, grids, near, perturb)
+    steps = box_steps(occ, step)
+    alive = torch.arange(n, device=dev)
+    active = state.phase < march_kernels.PHASE_DONE
+    transmittance = torch.ones(n, dtype=torch.float64, device=dev)
+    n_density, n_color = zero, zero
+    rounds = 0
+    while alive.numel():
+        if grad:
+            k = steps + (TRAIN_BG_STEPS if grids.has_bg else 0)
+            bg_per_block = -(-TRAIN_BG_STEPS // max(1, -(-steps // 128)))
+            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps,
+                                                               bg_per_block=bg_per_block)
+            size = alive.numel() * k if max_samples is None else min(int(max_samples), alive.numel() * k)
+            n_live = 0
+        else:
+            k = FRAME_ROUND_K[min(rounds, len(FRAME_ROUND_K) - 1)]
+            k = max(FRAME_ROUND_K[0], min(k, FRAME_ROUND_BUDGET // alive.numel()))
+            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps)
+            marching = active & (state.phase[alive] < march_kernels.PHASE_DONE)
+            size, n_live = (int(v) for v in read_back(counts.sum(), marching.sum()))  # the round's one sync
+        rounds += 1
+        if size:
+            row, ray_idx, t, dt, pts, sdirs, valid, first = flat_samples(o, d, alive, ts, dts, counts, size)
+            keep = scale = None
+            if sample_transform is not None:
+                pts, sdirs, keep, scale = _split_transform(sample_transform(pts, sdirs))
+            live = valid if keep is None else valid & keep
+            with torch.no_grad():
+                sigma, geo, enc, xn = _density_pass(model, pts, keep_encoding=grad)
+                sigma = sigma * live
+                if scale is not None:
+                    sigma = sigma * scale
+                tau = sigma * dt
+                trans = _segment_exclusive(tau, row, first) * transmittance[ray_idx].to(tau.dtype)
+                n_density = n_density + live.sum()
+            if grad:
+                # The samples a ray can still see: the only ones whose gradient is not ~0.
+                seen = (trans > early_stop_eps) & (sigma > 0)
+                factor = seen.to(sigma.dtype) if scale is None else seen * scale
+                kept = (ray_idx, t, dt, enc, xn, sdirs, factor, seen, row, first)
+            else:
+                w = trans * (1.0 - torch.exp(-tau))
+                lit = w > weight_threshold
+                rgb = _blocked_color(model, geo, sdirs, None if appearance is None else appearance[ray_idx])
+                w = torch.where(lit, w, 0.0)
+                color.index_add_(0, ray_idx, w[:, None] * rgb)
+                alpha.index_add_(0, ray_idx, w)
+                depth.index_add_(0, ray_idx, w * t)
+                n_color = n_color + lit.sum()
+            transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
+        if grad:
+            break
+        # Rays march on unless done or spent; how many (n_live) came with the round's read back.
+        marching_rows = torch.nonzero_static(marching, size=n_live).flatten()
+        alive = alive[marching_rows]
+        active = transmittance[alive] > early_stop_eps
+    if not grad:
+        # As in _render_chunk_frame: alpha is what the ray absorbed, the skipped weight takes the kept colour.
+        absorbed = (1.0 - transmittance).to(alpha.dtype)
+        absorbed = torch.where(transmittance <= early_stop_eps, torch.ones_like(absorbed), absorbed)
+        scale = torch.where(alpha > 1e-6, absorbed / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+        return color * scale[:, None], alpha * scale, depth * scale, n_density, n_color
+    if not size:
+        return color, alpha, depth, n_density, zero
+    ray_idx, t, dt, enc, xs, sdirs, factor, seen, row, first = kept
+    # Second pass with autograd on every sample, those the rays cannot see weighted 0 (masked, not removed).
+    if rays_grad:
+        sdirs = d_rays[ray_idx]
+        xs = model.normalize(o_rays[ray_idx] + sdirs * t[:, None])
+    inside = ((xs >= 0) & (xs <= 1)).all(dim=-1)
+    sigma, geo = model.features_from_encoding(model.encoding.reuse(enc, xs), inside)
+    sigma = sigma * factor
+    rgb = model.color(geo, sdirs, None if appearance is None else appearance[ray_idx])
+    tau = sigma * dt
+    trans = _segment_exclusive(tau, row, first)
+    w = trans * (1.0 - torch.exp(-tau))
+    color = _segment_sum(w[:, None] * rgb, ray_idx, n)
+    alpha = _segment_sum(w, ray_idx, n)
+    depth = _segment_sum(w * t, ray_idx, n)
+    if samples_out is not None:
+        samples_out.append((ray_idx, t, dt, w))
+    return color, alpha, depth, n_density, seen.sum()
+
+
 def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=None, chunk: int = 4096,
                 occupancy: OccupancyGrid | None = None, sample_transform: SampleTransform | None = None,
                 step: float | None = None, perturb: bool = False, early_stop_eps: float | None = None,
                 weight_threshold: float | None = None, near: float | None = None, return_samples: bool = False,
-                appearance: torch.Tensor | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+                appearance: torch.Tensor | None = None, progress: Callable[[int, int], None] | None = None,
+                max_samples: int | None = None) -> dict:
     """Render rays (origins (N,3), unit dirs (N,3), world frame) in chunks of `chunk` rays.
 
     Returns a dict: `color` (N,3) premultiplied (composited on black), `alpha` (N,),
@@ -473,6 +628,9 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     `appearance` (N, appearance_dim): each ray's image code (training; frames use the mean code).
     With `return_samples` (and gradients) also `samples`: (ray index, t, dt, weight)
     of the composited samples, sorted by ray then t (the distortion loss reads them).
+    On the device path (CUDA; `backend.use_kernels` false) with gradients, the sample counts are 0-dim
+    tensors (the caller reads them with its own values, in one sync), the samples include masked ones of
+    weight 0, and `max_samples` bounds the samples a chunk holds (a training step sizes it from the last).
     """
     occ = occupancy if occupancy is not None else model.occupancy
     step = float(step if step is not None else model.config.render_step)
@@ -487,8 +645,15 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     outs, n_den, n_col = [], 0, 0
     total = origins.shape[0]
     frame = not grad and not perturb and _render_path == "fast"
+    device_path = _render_path == "fast" and not backend.use_kernels(origins.device)
     for s in range(0, total, chunk):
-        if frame:
+        if device_path:
+            c, a, dp, nd, nc = _render_chunk_device(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
+                                                    sample_transform, perturb, early_stop_eps, weight_threshold,
+                                                    grad, near, samples,
+                                                    None if appearance is None else appearance[s: s + chunk],
+                                                    max_samples)
+        elif frame:
             c, a, dp, nd, nc = _render_chunk_frame(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
                                                    sample_transform, early_stop_eps, weight_threshold, near,
                                                    None if appearance is None else appearance[s: s + chunk])
@@ -505,6 +670,8 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
         n_col += nc
         if progress is not None:
             progress(min(s + chunk, total), total)
+    if device_path and not grad:
+        n_den, n_col = (int(v) for v in read_back(n_den, n_col))
     if outs:
         color = torch.cat([x[0] for x in outs])
         alpha = torch.cat([x[1] for x in outs])
@@ -568,7 +735,7 @@ def render_image(model, camera: Camera, background=None, chunk: int | None = Non
         color, alpha, depth, rgb = out["color"], out["alpha"], out["depth"], out["rgb"]
         n_den, n_col = out["n_density_samples"], out["n_color_samples"]
     else:
-        chunk = int(chunk or FRAME_CHUNK)
+        chunk = int(chunk or (FRAME_CHUNK_CUDA if model.device.type == "cuda" else FRAME_CHUNK))
         if chunk < 1:
             raise ValueError(f"chunk must be a positive number of rays, got {chunk}")
         progress = kwargs.pop("progress", None)
@@ -582,8 +749,14 @@ def render_image(model, camera: Camera, background=None, chunk: int | None = Non
             pixels = order[s: s + chunk]
             o, d = pixel_rays(camera, pixels, device=model.device)
             out = render_rays(model, o, d, background=background, chunk=pixels.numel(), **kwargs)
-            color[pixels], alpha[pixels] = out["color"].cpu(), out["alpha"].cpu()
-            depth[pixels], rgb[pixels] = out["depth"].cpu(), out["rgb"].cpu()
+            if backend.use_kernels(model.device):
+                color[pixels], alpha[pixels] = out["color"].cpu(), out["alpha"].cpu()
+                depth[pixels], rgb[pixels] = out["depth"].cpu(), out["rgb"].cpu()
+            else:  # one copy to the host per chunk (on CUDA each copy waits for the device)
+                packed = to_host(torch.cat([out["color"], out["alpha"][:, None], out["depth"][:, None], out["rgb"]],
+                                           1))
+                color[pixels], alpha[pixels] = packed[:, :3], packed[:, 3]
+                depth[pixels], rgb[pixels] = packed[:, 4], packed[:, 5:]
             n_den += out["n_density_samples"]
             n_col += out["n_color_samples"]
             if progress is not None:

@@ -38,6 +38,7 @@ import torch
 from .. import backend
 from . import adam_kernels
 from ..errors import EngineError
+from ..launch_count import read_back
 from ..files import atomic_write, check_writable, folder_lock, interrupts_deferred, remove_stale_temporaries
 from .checkpoint import load_nerf, read_checkpoint, save_nerf
 from .dataset import NerfDataset, load_dataset
@@ -105,8 +106,11 @@ def distortion_loss(ray_idx: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, w:
     """
     s = 1.0 - 1.0 / (1.0 + t / scale)
     ds = dt / scale / (1.0 + t / scale) ** 2
-    counts = torch.bincount(ray_idx, minlength=n_rays)
-    starts = (torch.cumsum(counts, 0) - counts)[ray_idx]
+    if backend.use_kernels(ray_idx.device):
+        counts = torch.bincount(ray_idx, minlength=n_rays)
+        starts = (torch.cumsum(counts, 0) - counts)[ray_idx]
+    else:  # the device path: each sample's ray's first sample, with no count read back
+        starts = torch.searchsorted(ray_idx, ray_idx)
 
     def exclusive(x):
         c = torch.cumsum(x, 0) - x
@@ -152,7 +156,8 @@ class Trainer:
                                   f"dataset has {n}")
             mlp_params += list(model.appearance.parameters())
         params = mlp_params if self.lazy_table else [enc.table] + mlp_params
-        self.optimizer = torch.optim.Adam(params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15)
+        # The device path: all parameters in one fused kernel.
+        self.optimizer = torch.optim.Adam(params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15, fused=not self.lazy_table)
         # Per photo: a rotation vector (radians, world axes, about the camera's centre) and a translation
         # in units of pose_scale; zero is the photo's own pose.
         self.pose_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
@@ -244,6 +249,10 @@ class Trainer:
         fx, fy, cx, cy = self.intr[img].unbind(-1)
         d_cam = torch.stack([(i - cx) / fx, -(j - cy) / fy, -torch.ones_like(i)], dim=-1)
         for k, lens in enumerate(self.lenses):  # rays through the pixels as each lens bent them
+            if not self.lazy_table:  # the device path: masked, the rays' number is not read back
+                sel = (self.lens_of_image[img] == k)[:, None]
+                d_cam = torch.where(sel, camera_directions(fx, fy, cx, cy, i, j, lens), d_cam)
+                continue
             sel = torch.nonzero(self.lens_of_image[img] == k).squeeze(1)
             if len(sel):
                 d_cam[sel] = camera_directions(fx[sel], fy[sel], cx[sel], cy[sel], i[sel], j[sel], lens)
@@ -318,6 +327,18 @@ class Trainer:
             adam_kernels.sparse_adam(enc.table.detach().numpy(), enc.grad_buffer().numpy(), self.table_m.numpy(),
                          self.table_v.numpy(), enc.touched_rows(), lr, 0.9, 0.99, 1e-15, 1 - 0.9**t, 1 - 0.99**t)
 
+    # The device path: slots for the samples of a step's batch (None: every sample the march can give), sized
+    # from the last step's samples per ray with room to spare; a full step (samples were cut) doubles them.
+    sample_cap: int | None = None
+    SAMPLE_CAP_ROOM, SAMPLE_CAP_QUANTUM = 1.5, 1 << 12
+
+    def _next_sample_cap(self, n_density: float, rays: int) -> int:
+        cap = self.SAMPLE_CAP_ROOM * n_density / max(rays, 1) * self.n_rays
+        cap = self.SAMPLE_CAP_QUANTUM * (int(cap) // self.SAMPLE_CAP_QUANTUM + 1)
+        if self.sample_cap is not None and n_density >= self.sample_cap:
+            cap = max(cap, 2 * self.sample_cap)
+        return cap
+
     def step(self) -> dict:
         """One optimisation step; returns loss, psnr (of the batch), rays and samples."""
         t_start = time.perf_counter()
@@ -338,26 +359,37 @@ class Trainer:
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
         codes = m.appearance(images) if m.appearance is not None else None
         out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0,
-                          appearance=codes)
+                          appearance=codes, max_samples=self.sample_cap)
         squared = (out["rgb"] - tgt) ** 2
         loss = mse = torch.mean(squared)
         if self.distortion > 0 and out.get("samples") is not None:
             r, t, dt, w = out["samples"]
             loss = loss + self.distortion * distortion_loss(r, t, dt, w, self.n_rays, self.distortion_scale)
         self.optimizer.zero_grad(set_to_none=True)
-        n_samples = out["n_color_samples"]
-        if n_samples:
-            loss.backward()
-            self._optimizer_step(self.learning_rate())
+        if self.lazy_table:
+            n_samples, n_density = out["n_color_samples"], out["n_density_samples"]
+            if n_samples:
+                loss.backward()
+                self._optimizer_step(self.learning_rate())
+            lv = float(mse.detach())
+        else:
+            # The device path: no sample count is known before the step's one sync, which reads the loss
+            # and both counts together after the update.
+            if loss.requires_grad:
+                loss.backward()
+                self._optimizer_step(self.learning_rate())
+            lv, n_samples, n_density = read_back(mse, out["n_color_samples"], out["n_density_samples"])
         self.record_errors(pixels, squared.detach().mean(dim=-1))
         # Keep the number of samples per step near the target (nerfacc's dynamic batch).
+        rays = self.n_rays
         per_ray = max(n_samples / self.n_rays, 1e-3)
-        den_per_ray = max(out["n_density_samples"] / self.n_rays, 1e-3)
+        den_per_ray = max(n_density / self.n_rays, 1e-3)
         want = min(self.opt.target_samples / per_ray, 4 * self.opt.target_samples / den_per_ray)
         self.n_rays = int(min(self.opt.max_rays, 2 * self.n_rays, max(64, 0.7 * self.n_rays + 0.3 * want)))
+        if not self.lazy_table:
+            self.sample_cap = self._next_sample_cap(n_density, rays)
         self.step_count += 1
         self.elapsed += time.perf_counter() - t_start
-        lv = float(mse.detach())
         self.last = {"loss": lv, "psnr": -10 * math.log10(max(lv, 1e-10)), "rays": o.shape[0],
                      "samples_per_ray": per_ray, "density_samples_per_ray": den_per_ray}
         return self.last
