@@ -28,7 +28,7 @@ setup: $(STAMP)
 
 # Re-installs only when requirements.txt changed since the last install, so a
 # second `make setup` with nothing changed is a no-op.
-$(STAMP): requirements.txt blender_nerf_deform/engine/requirements.txt
+$(STAMP): requirements.txt blender_nerf_deform/engine/requirements.txt blender_nerf_deform/engine/requirements-cuda.txt
 	@command -v $(PYTHON) >/dev/null || { echo "error: $(PYTHON) not found; Python 3.11 is required (Blender 4.2-5.0 ship 3.11)" >&2; exit 1; }
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || { echo "error: $(PYTHON) is not Python 3.11" >&2; exit 1; }
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)

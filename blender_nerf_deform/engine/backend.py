@@ -10,7 +10,11 @@ two paths:
   test or benchmark: the torch path on CPU too (the code CUDA runs);
 - otherwise numba's kernels for CPU tensors and torch for CUDA ones.
 
-Importing this module imports neither numba nor torch.
+On the torch path, the hottest pieces run as Triton kernels where Triton can run them (`use_triton`): on
+CUDA, and on CPU tensors under Triton's interpreter (TRITON_INTERPRET=1, how the tests run them).
+`NERF_DEFORM_TRITON=0` or `triton_enabled(False)` keeps the torch formulation (to compare with).
+
+Importing this module imports neither numba nor torch nor triton.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import importlib.util
 import os
 
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+HAVE_TRITON = importlib.util.find_spec("triton") is not None
+_triton = os.environ.get("NERF_DEFORM_TRITON", "1").strip() != "0"
 PATHS = ("auto", "torch")
 _path = os.environ.get("NERF_DEFORM_KERNELS", "auto").strip().lower() or "auto"
 if _path not in PATHS:
@@ -48,3 +54,23 @@ def forced(name: str):
         yield
     finally:
         _path = previous
+
+
+def use_triton(device="cpu") -> bool:
+    """Whether torch-path work on `device` runs the Triton kernels: on CUDA, and on the CPU only under Triton's
+    interpreter (TRITON_INTERPRET=1 when the kernels are first imported)."""
+    if not (HAVE_TRITON and _triton) or use_kernels(device):
+        return False
+    kind = getattr(device, "type", None) or str(device).split(":")[0]
+    return kind == "cuda" or (kind == "cpu" and os.environ.get("TRITON_INTERPRET", "0") == "1")
+
+
+@contextlib.contextmanager
+def triton_enabled(flag: bool):
+    """Run the block with the Triton kernels (True, where they can run) or with the torch formulation."""
+    global _triton
+    previous, _triton = _triton, bool(flag)
+    try:
+        yield
+    finally:
+        _triton = previous

@@ -141,18 +141,33 @@ class HashEncoding(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Encode points x (N, 3) in [0, 1]^3 (clamped) → (N, n_levels * n_features), level-major.
 
-        CPU float32: the fused numba kernels; otherwise (CUDA): torch. Both are
-        differentiable in the table and in the positions.
+        CPU float32: the fused numba kernels; on the torch path (CUDA) the Triton kernels where they run
+        (hash_triton.py), else torch. All are differentiable in the table; numba and torch in the positions too.
         """
         if encoding_kernels.kernels_apply(x, self.table):
             return encoding_kernels.HashEncodeCPU.apply(x, self.table, self)
+        if self._triton_applies(x):
+            from . import hash_triton
+
+            return hash_triton.HashEncode.apply(x, self.table, self)
         return self.torch_forward(x)
+
+    def _triton_applies(self, x: torch.Tensor) -> bool:
+        """The Triton kernels (backend.use_triton): float32, a power-of-two feature count, and no gradient in
+        the positions (the torch path carries that one)."""
+        f = self.n_features
+        return (backend.use_triton(x.device) and x.dtype == torch.float32 and self.table.dtype == torch.float32
+                and not x.requires_grad and f & (f - 1) == 0)
 
     def reuse(self, encoded: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """The encoding of x, given `encoded` = self(x) computed without gradients: on the CPU kernel path
         it is reused (only the backward runs); elsewhere it is recomputed with autograd."""
         if encoding_kernels.kernels_apply(x, self.table):
             return encoding_kernels.HashReuseCPU.apply(encoded, x, self.table, self)
+        if self._triton_applies(x):
+            from . import hash_triton
+
+            return hash_triton.HashReuse.apply(encoded, x, self.table, self)
         return self(x)
 
     def torch_forward(self, x: torch.Tensor) -> torch.Tensor:

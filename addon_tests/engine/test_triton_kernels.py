@@ -1,0 +1,86 @@
+"""The Triton kernels of the device path, run on CPU tensors under Triton's interpreter: the same values and
+gradients as the torch formulation, one launch each, and frames that agree with the CPU kernels'."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from blender_nerf_deform.engine import backend
+from blender_nerf_deform.engine.launch_count import LaunchCounter
+from blender_nerf_deform.engine.nerf.encoding import HashEncoding
+from blender_nerf_deform.engine.nerf.renderer import Camera, render_image
+
+from fixtures.ball_model import ball_model
+from fixtures.sphere_data import look_at
+
+pytestmark = pytest.mark.skipif(not backend.HAVE_TRITON, reason="triton is not installed")
+
+
+@pytest.fixture(autouse=True)
+def interpreter():
+    """Triton's interpreter for the test (it must be on when the kernels are first imported)."""
+    before = os.environ.get("TRITON_INTERPRET")
+    os.environ["TRITON_INTERPRET"] = "1"
+    try:
+        with backend.forced("torch"):
+            yield
+    finally:
+        if before is None:
+            del os.environ["TRITON_INTERPRET"]
+        else:
+            os.environ["TRITON_INTERPRET"] = before
+
+
+def test_the_hash_encoding_kernels_give_the_torch_values_and_table_gradient():
+    torch.manual_seed(0)
+    enc = HashEncoding(n_levels=4, n_features=2, log2_table_size=10, base_resolution=4, finest_resolution=64,
+                       init_scale=1.0)
+    assert enc.dense_levels[0] and not enc.dense_levels[-1]  # a dense level and hashed ones
+    x = torch.rand(200, 3)
+    x[0] = float("nan")
+    x[1], x[2], x[3] = 1.0, 0.0, torch.tensor([1.0, 0.5, 1.5])  # faces of the cube, a point outside
+    grad = torch.randn(200, enc.out_dim)
+    with LaunchCounter() as counter:
+        out = enc(x)
+        out.backward(grad)
+    assert counter.by_op["kernel:hash_forward"] == 1 and counter.by_op["kernel:hash_backward"] == 1
+    assert counter.launches <= 3 and counter.syncs == 0  # the two kernels and the gradient's zeros
+    table_grad, enc.table.grad = enc.table.grad.clone(), None
+    reference = enc.torch_forward(x)
+    reference.backward(grad)
+    torch.testing.assert_close(out, reference, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(table_grad, enc.table.grad, atol=1e-5, rtol=1e-5)
+    assert table_grad.abs().sum() > 0
+    with backend.triton_enabled(False), LaunchCounter() as counter:
+        enc(x).backward(grad)
+    assert counter.launches > 10  # what the kernels replace
+
+
+def test_reuse_runs_only_the_backward_kernel():
+    torch.manual_seed(1)
+    enc = HashEncoding(n_levels=3, n_features=4, log2_table_size=9, base_resolution=4, finest_resolution=32)
+    x = torch.rand(50, 3)
+    with torch.no_grad():
+        encoded = enc(x)
+    grad = torch.randn_like(encoded)
+    with LaunchCounter() as counter:
+        enc.reuse(encoded, x).backward(grad)
+    assert "kernel:hash_forward" not in counter.by_op and counter.by_op["kernel:hash_backward"] == 1
+    table_grad, enc.table.grad = enc.table.grad.clone(), None
+    enc.torch_forward(x).backward(grad)
+    torch.testing.assert_close(table_grad, enc.table.grad, atol=1e-5, rtol=1e-5)
+
+
+def test_a_frame_with_the_kernels_agrees_with_the_cpu_kernels():
+    model = ball_model(3, radius=0.9, table_noise=0.3, feature_noise=0.5)
+    camera = Camera.from_fov(look_at((0.4, -2.4, 0.8)), 20, 14, 0.75, name="cam")
+    with LaunchCounter() as counter:
+        device = render_image(model, camera)
+    assert counter.by_op["kernel:hash_forward"] >= 1
+    with backend.forced("auto"):
+        kernels = render_image(model, camera)
+    mse = float(np.mean((device["rgba"].astype(np.float64) - kernels["rgba"]) ** 2))
+    assert kernels["rgba"][..., 3].max() > 0.5
+    assert mse == 0 or -10 * np.log10(mse) >= 60
