@@ -296,6 +296,23 @@ def _photos(tmp, sizes) -> Path:
     return folder
 
 
+def _pipe(path: Path) -> Path:
+    """A named pipe at `path`: reading it blocks until someone writes, so it must be refused, not opened."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    os.mkfifo(path)
+    return path
+
+
+def _text_pose(base, tmp: Path) -> Path:
+    np.save(tmp / "text.npy", np.load(base["rest"]).astype(str))
+    return tmp / "text.npy"
+
+
+def _link_to_nowhere(tmp: Path) -> Path:
+    (tmp / "vol").symlink_to(tmp / "nowhere")
+    return tmp / "vol"
+
+
 def _collapsed_pose(base, tmp):
     np.save(tmp / "collapsed.npy", np.zeros_like(np.load(base["rest"])))
     return tmp / "collapsed.npy"
@@ -403,6 +420,20 @@ CASES = {
     "bake-volume a file of the user's where a volume goes": lambda b, t: (
         _bake_two_poses_past(b, t, "p1.npz"), ("p1.npz", "is not a baked volume", "left alone"), ["vol/p2.npz"]),
     "bake-volume --out is a file": lambda b, t: (_bake_into_a_file(b, t), ("vol", "not a folder"), []),
+    # kin of the above, found later: text for a pose, a box far larger than the NeRF (an empty volume, exit 0,
+    # before), a pipe where a volume goes or as the pose (a read that never returned), a link to nowhere
+    "bake-volume pose of text": lambda b, t: (
+        _bake(b, t, "--cage", b["cage"], "--deformed", _text_pose(b, t)), ("text.npy", "array of <U", "not numbers"),
+        ["vol"]),
+    "bake-volume region far larger than the NeRF": lambda b, t: (
+        _bake(b, t, "--region", _region_file(t, {**UNIT_REGION, "size": [1e300, 1e300, 1]})),
+        ("1e+300 x 1e+300 x 1", "larger than the NeRF's whole box"), ["vol"]),
+    "bake-volume a pipe where the volume goes": lambda b, t: (
+        [*_bake(b, t)] if _pipe(t / "vol" / "rest.npz") else None, ("rest.npz", "not a file", "left alone"), []),
+    "bake-volume pose that is a pipe": lambda b, t: (
+        _bake(b, t, "--cage", b["cage"], "--deformed", _pipe(t / "pose.npy")), ("pose.npy", "not a file"), ["vol"]),
+    "bake-volume --out a link to nowhere": lambda b, t: (
+        _bake(b, t, out="vol/sub") if _link_to_nowhere(t) else None, ("vol is a symbolic link", "does not exist"), []),
     "prepare whose first photo has another size": lambda b, t: (
         ["prepare", "--images", _photos(t, [(48, 32), (32, 32), (32, 32), (32, 32)]), "--out", t / "dataset"],
         ("a.png is 48x32", "3 of the 4 photos are 32x32"), ["dataset"]),
@@ -814,3 +845,27 @@ def test_staged_files_take_their_places_together_or_not_at_all(tmp_path):
         staged.write(tmp_path / "a", lambda f: f.write(b"newer a"))
         raise KeyboardInterrupt
     assert (tmp_path / "a").read_text() == "new a" and _files(tmp_path) == {"a", "c", "c/x", "made", "made/b"}
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_a_bake_killed_by_sigterm_or_sighup_leaves_nothing(base, tmp_path, signum):
+    """A scheduler's SIGTERM, a closed terminal's SIGHUP: the staged files and the folders the run made go,
+    as for Ctrl-C (by default Python dies at once, leaving `.p1.npz.*.tmp` and its folders)."""
+    poses = _poses_folder(base, tmp_path, *([1.0] * 8))
+    out = tmp_path / "new" / "vol"
+    proc = subprocess.Popen([*ENGINE, *map(str, _bake(base, tmp_path, "--cage", base["cage"], "--deformed", poses,
+                                                      "--resolution", "64", out="new/vol"))],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + START_WAIT_S
+        while not list(out.glob(".p1.npz.*.tmp")) and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None and list(out.glob(".p1.npz.*.tmp")), "the bake never staged its first pose"
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signum and f"terminated by {signal.Signals(signum).name}" in err, err[-2000:]
+    assert "Traceback" not in err and not (tmp_path / "new").exists()

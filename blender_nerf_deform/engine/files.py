@@ -48,23 +48,29 @@ def write_error(path, exc: OSError) -> EngineError:
 @contextlib.contextmanager
 def interrupts_deferred():
     """Ctrl-C (SIGINT) inside the block is held until the block ends, then delivered as it would
-    have been. Only the main thread can handle signals; elsewhere the block runs as is."""
+    have been; so are SIGTERM and SIGHUP where a Python handler takes them (the command line's:
+    errors.Terminated). Only the main thread can handle signals; elsewhere the block runs as is."""
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
         yield  # None: a handler installed outside Python, which could not be put back
         return
+    held = [signal.SIGINT] + [getattr(signal, name) for name in ("SIGTERM", "SIGHUP")
+                              if hasattr(signal, name) and callable(signal.getsignal(getattr(signal, name)))]
     received = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(frame))
+    previous = {signum: signal.signal(signum, lambda signum, frame: received.append((signum, frame))) for signum in held}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         if received:
-            if previous is signal.default_int_handler:
+            signum, frame = received[0]
+            handler = previous[signum]
+            if handler is signal.default_int_handler:
                 raise KeyboardInterrupt
-            if callable(previous):
-                previous(signal.SIGINT, received[0])
-            elif previous == signal.SIG_DFL:
-                signal.raise_signal(signal.SIGINT)
+            if callable(handler):
+                handler(signum, frame)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
@@ -163,15 +169,18 @@ class StagedFiles:
         return Path(tmp)
 
     def write(self, target, write: Callable[[BinaryIO], None]) -> None:
-        """Write the temporary file of `target` through `write(f)`, flushed to disk."""
-        tmp = self.temporary(target)
-        try:
-            with open(tmp, "wb") as f:
-                write(f)
-                f.flush()
-                os.fsync(f.fileno())
-        except OSError as exc:
-            raise write_error(target, exc) from None
+        """Write the temporary file of `target` through `write(f)`, flushed to disk. Ctrl-C (SIGTERM, SIGHUP)
+        waits until the file is written: stopped inside it, a writer such as zipfile's is left half-closed and
+        prints a traceback when Python collects it."""
+        with interrupts_deferred():
+            tmp = self.temporary(target)
+            try:
+                with open(tmp, "wb") as f:
+                    write(f)
+                    f.flush()
+                    os.fsync(f.fileno())
+            except OSError as exc:
+                raise write_error(target, exc) from None
 
     def commit(self) -> None:
         """Move every staged file to its target (replacing what is there); Ctrl-C waits until it is done."""
@@ -256,6 +265,9 @@ def check_writable(path, folder: bool = False) -> None:
             raise EngineError(f"--out {path}: exists and is not a folder")
         existing = path
         while not existing.exists():
+            if existing.is_symlink():  # a link to nothing: no folder can be made in its place
+                raise EngineError(f"cannot create folder {path}: {existing} is a symbolic link to "
+                                  f"{os.readlink(existing)}, which does not exist")
             if existing.parent == existing:
                 break
             existing = existing.parent

@@ -124,6 +124,21 @@ def write_vdb(path, shape, index_to_local: np.ndarray, index: np.ndarray, densit
         raise VolumeFileError(f"cannot write {path}: {getattr(exc, 'strerror', None) or exc}") from None
 
 
+def scaled_density(density: np.ndarray, scale: float, where: str) -> np.ndarray:
+    """`density` (per NeRF unit) divided by `scale` (world units per NeRF unit) as float32; VolumeFileError
+    naming `where` when a tiny scale makes it overflow (float32 holds up to 3.4e38)."""
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        scaled = (np.asarray(density, dtype=np.float64) / scale).astype(np.float32)
+    if len(scaled) and not np.isfinite(scaled).all() and np.isfinite(density).all():  # (NaN input: its own error)
+        largest = float(np.max(density))
+        with np.errstate(over="ignore"):
+            per_world = np.float64(largest) / scale
+        raise VolumeFileError(f"{where}: a scale of {scale:.3g} world units per NeRF unit makes the density "
+                              f"{largest:.3g} per NeRF unit overflow float32 ({per_world:.3g} per "
+                              "world unit): give the volume a larger scale")
+    return scaled
+
+
 def check_vdb_replaceable(path, owner: str | None = None) -> None:
     """VolumeFileError unless `path` is free or holds what a bake may replace: an OpenVDB file, and with
     `owner` one baked from that NeRF (its grids name it; a bake from before they did has exactly the grids
@@ -133,6 +148,9 @@ def check_vdb_replaceable(path, owner: str | None = None) -> None:
         raise VolumeFileError(f"cannot write {path}: it is a folder; move it, or bake into another folder")
     if not path.exists():
         return
+    if not path.is_file():  # reading a pipe would block forever
+        raise VolumeFileError(f"cannot write {path}: it is not a file (a pipe, a socket or a device): it is left "
+                              "alone; move it, or bake into another folder")
     try:
         with open(path, "rb") as f:
             magic = f.read(len(OPENVDB_MAGIC))

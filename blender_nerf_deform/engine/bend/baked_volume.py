@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import EngineError
 from ..files import atomic_write
+from ..geometry.poses import MAX_COORDINATE
 from ..geometry.region import EditRegion
 from ..memory import check_memory
 
@@ -65,9 +66,10 @@ def check_resolution(resolution) -> int:
     return int(resolution)
 
 
-def volume_grid(box: EditRegion, resolution: int) -> VolumeGrid:
+def volume_grid(box: EditRegion, resolution: int, content=None) -> VolumeGrid:
     """Cubic voxels over the oriented `box`, `resolution` along its longest side (at least one per axis).
-    A box that is not finite, or whose voxels would be smaller than OpenVDB can place, is refused."""
+    A box that is not finite, or whose voxels would be smaller than OpenVDB can place, is refused; with
+    `content` (the NeRF's box, (2, 3) bounds), so is one whose voxels would be larger than all of it."""
     resolution = check_resolution(resolution)
     size = np.asarray(box.size, dtype=np.float64)
     described = " x ".join(f"{x:.3g}" for x in size)
@@ -86,6 +88,18 @@ def volume_grid(box: EditRegion, resolution: int) -> VolumeGrid:
         raise EngineError(f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
                           f"{voxel:.3g}, smaller than the {MIN_VOXEL_SIZE:g} OpenVDB can place: bake it at a "
                           f"resolution of at most {most}, or a larger box")
+    if content is not None:
+        # A box far larger than the NeRF (a region scaled by mistake, a cage posed far out) samples the
+        # NeRF at a handful of points or none: an empty or meaningless volume, not an error, without this.
+        c = np.asarray(content, dtype=np.float64).reshape(2, 3)
+        nerf_side = float((c[1] - c[0]).max())
+        if voxel > nerf_side:
+            least = math.ceil(longest / nerf_side)
+            advice = (f"bake it at a resolution of at least {least}, or a smaller box" if least <= MAX_RESOLUTION
+                      else "bake a smaller box")
+            raise EngineError(f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
+                              f"{voxel:.3g}, larger than the NeRF's whole box ({nerf_side:.3g} across), which would "
+                              f"fill less than one voxel: {advice}")
     shape = tuple(int(max(1, math.ceil(s / voxel - 1e-9))) for s in size)
     lo_local = -0.5 * voxel * np.asarray(shape, dtype=np.float64)  # centred on the box
     m = np.eye(4)
@@ -132,6 +146,8 @@ class BakedVolume:
 
 def is_baked_volume_file(path) -> bool:
     """Whether `path` is an .npz archive holding a baked volume's arrays (what a bake may replace)."""
+    if not Path(path).is_file():  # a pipe would block the read forever
+        return False
     try:
         with zipfile.ZipFile(path) as z:
             return {f"{name}.npy" for name in ARRAYS} <= set(z.namelist())
@@ -164,11 +180,22 @@ def check_baked_arrays(shape, index_to_nerf, index, density, color, where: str) 
     m = index_to_nerf.astype(np.float64)
     if not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
         refuse("`index_to_nerf` is not a finite affine 4x4 matrix")
+    if np.abs(m).max() > MAX_COORDINATE:
+        refuse(f"`index_to_nerf` places its voxels beyond {MAX_COORDINATE:g} NeRF units (its largest entry is "
+               f"{np.abs(m).max():.3g})")
     if abs(np.linalg.det(m[:3, :3])) < MIN_VOXEL_SIZE ** 3:
         refuse(f"`index_to_nerf` makes voxels smaller than {MIN_VOXEL_SIZE:g} NeRF units (or flat), which OpenVDB "
                "cannot place")
     if n and ((index < 0).any() or (index >= shape.astype(index.dtype)).any()):
         refuse("voxel indices in `index` lie outside its grid")
+    if n > 1:
+        # Two values for one voxel: OpenVDB would keep whichever came last, without a word.
+        ny, nz = (int(x) for x in shape[1:])
+        flat = (index[:, 0].astype(np.int64) * ny + index[:, 1]) * nz + index[:, 2]
+        order = np.argsort(flat, kind="stable")
+        twice = np.flatnonzero(flat[order][1:] == flat[order][:-1])
+        if len(twice):
+            refuse(f"`index` lists voxel {index[order[twice[0]]].tolist()} more than once ({len(twice)} repeats)")
     for name in ("density", "color"):
         bad = np.flatnonzero(~np.isfinite(arrays[name]).reshape(n, -1).all(axis=1)) if n else ()
         if len(bad):
@@ -199,10 +226,13 @@ def _declared(z: np.lib.npyio.NpzFile, path) -> dict[str, tuple[tuple, np.dtype]
 def load_baked(path) -> BakedVolume:
     """A baked frame's .npz, every array checked (a clear error naming the file): dtypes, shapes and the
     memory they need from the archive's headers before any is loaded, then their values."""
+    if Path(path).exists() and not Path(path).is_dir() and not Path(path).is_file():  # a pipe would block forever
+        raise EngineError(f"baked volume {path} is not a file (a pipe or a device?)")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise EngineError(f"{path} is not a baked volume: a single array, not an .npz archive")
+        z = np.load(path, mmap_mode="r", allow_pickle=False)  # a .npy: mapped, not read (it is refused)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a single array (.npy) holds no file open
+            raise EngineError(f"{path} is not a baked volume: a single array, not an .npz archive")
+        with z:
             declared = _declared(z, path)
             need = sum(float(np.prod(shape, dtype=np.float64)) * dtype.itemsize for shape, dtype in declared.values())
             check_memory(need, f"baked volume {path}", "this file cannot be a volume `bake-volume` wrote (bake it again)")

@@ -35,6 +35,9 @@ def check_replaceable(path: Path) -> None:
     """EngineError unless `path` is free or holds an earlier bake (nothing else is replaced)."""
     if path.is_dir():
         raise EngineError(f"cannot write {path}: it is a folder; move it, or bake into another --out")
+    if path.exists() and not path.is_file():
+        raise EngineError(f"cannot write {path}: it is not a file (a pipe, a socket or a device): it is left alone; "
+                          "move it, or bake into another --out")
     if path.exists() and not is_baked_volume_file(path):
         raise EngineError(f"{path} exists and is not a baked volume: it is left alone; move it, or bake into another --out")
 
@@ -60,7 +63,8 @@ def main(args) -> int:
     for target in targets:
         check_replaceable(target)
     model = load_nerf(args.nerf, device=args.device or "auto")
-    grids = [volume_grid(bake_box(extent, model, pose), args.resolution) for pose in poses]
+    bounds = model.aabb.detach().cpu().double().reshape(2, 3).numpy()
+    grids = [volume_grid(bake_box(extent, model, pose), args.resolution, content=bounds) for pose in poses]
     for grid in grids:
         check_volume_memory(grid)
     renderer = PosedRenderer(model, cage["vertices"], cage["tets"]) if cage is not None else PosedRenderer(model)

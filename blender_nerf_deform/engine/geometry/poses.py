@@ -36,6 +36,8 @@ def pose_files(deformed_path) -> list[Path]:
         return files
     if not path.exists():
         raise EngineError(f"deformed vertices {path} do not exist")
+    if not path.is_file():  # a pipe or a device would block the read forever
+        raise EngineError(f"deformed vertices {path} are not a file (a pipe or a device?)")
     return [path]
 
 
@@ -50,8 +52,10 @@ def load_pose(path, vertex_shape: tuple) -> np.ndarray:
     if not isinstance(deformed, np.ndarray) or deformed.ndim != 2 or deformed.shape[1] != 3 \
             or not (np.issubdtype(deformed.dtype, np.floating) or np.issubdtype(deformed.dtype, np.integer)):
         shape = getattr(deformed, "shape", None)
+        dtype = getattr(deformed, "dtype", None)
+        what = f"{shape}" if dtype is None or dtype.kind in "fiu" else f"a {shape} array of {dtype} (not numbers)"
         raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
-                          f"(same vertices, same order), got {shape}")
+                          f"(same vertices, same order), got {what}")
     if deformed.shape != vertex_shape:
         raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
                           f"(same vertices, same order), got {deformed.shape}: {deformed.shape[0]} vertices, "

@@ -528,7 +528,7 @@ def bake_volume(job: Job) -> tuple[dict, dict]:
     model = _model(params)
     renderer, deformed, stats = _posed(job, model, params.get("pose"))
     box = bake_box(extent, model, deformed if deformed is not None else None)
-    grid = volume_grid(box, params.get("resolution", 256))
+    grid = volume_grid(box, params.get("resolution", 256), content=model.aabb.detach().cpu().double().reshape(2, 3).numpy())
     check_volume_memory(grid)
     job.progress(0.0, "baking")
     baked, inversion = renderer.bake(grid, deformed, supersample=params.get("supersample", 1),
