@@ -75,12 +75,67 @@ def test_reuse_runs_only_the_backward_kernel():
 
 def test_a_frame_with_the_kernels_agrees_with_the_cpu_kernels():
     model = ball_model(3, radius=0.9, table_noise=0.3, feature_noise=0.5)
+    model.config.steps_per_diagonal = 64  # (the interpreter's time goes with the lattice steps per round)
     camera = Camera.from_fov(look_at((0.4, -2.4, 0.8)), 20, 14, 0.75, name="cam")
     with LaunchCounter() as counter:
         device = render_image(model, camera)
-    assert counter.by_op["kernel:hash_forward"] >= 1
+    assert counter.by_op["kernel:hash_forward"] >= 2 and counter.by_op["kernel:march"] >= 2
     with backend.forced("auto"):
         kernels = render_image(model, camera)
     mse = float(np.mean((device["rgba"].astype(np.float64) - kernels["rgba"]) ** 2))
-    assert kernels["rgba"][..., 3].max() > 0.5
+    assert kernels["rgba"][..., 3].max() > 0.5 and kernels["rgba"][..., 3].min() < 0.01
     assert mse == 0 or -10 * np.log10(mse) >= 60
+    assert device["density_samples_per_ray"] == kernels["density_samples_per_ray"]
+
+
+def _march_both(model, o, d, k, box_steps):
+    """One round of the device march by the Triton kernel and by the torch formulation, from the same start."""
+    from blender_nerf_deform.engine.nerf import march_kernels, renderer
+
+    grids = renderer._grids(model, model.occupancy, model.config.render_step, background=True)
+    results = []
+    for triton_on in (True, False):
+        torch.manual_seed(5)  # the same random offsets u for both
+        state = renderer.march_setup(o, d, model.occupancy, grids, 0.0, True)
+        alive = torch.arange(o.shape[0])
+        active = torch.arange(o.shape[0]) % 5 != 0  # some rays sit the round out
+        with backend.triton_enabled(triton_on), LaunchCounter() as counter:
+            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, box_steps)
+        results.append((ts, dts, counts, state, counter))
+    return results
+
+
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_the_march_kernel_places_the_torch_formulations_samples(unbounded):
+    from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+    from blender_nerf_deform.engine.nerf.renderer import box_steps
+
+    torch.manual_seed(2)
+    if unbounded:
+        model = NerfModel(NerfConfig(contraction="linf", log2_table_size=10, finest_resolution=32, occ_resolution=16,
+                                     steps_per_diagonal=64))
+        with torch.no_grad():
+            model.encoding.table.uniform_(-1, 1)
+        model.occupancy.update(model.density, model.config.render_step, 0.0)
+        model.background.update(model.density, model.config.render_step, 0.0)
+        o = torch.tensor([[0.0, -2.5, 0.3]]).repeat(40, 1)
+    else:
+        model = ball_model(4, radius=0.7, table_noise=0.3)
+        model.config.steps_per_diagonal = 96
+        o = torch.tensor([[0.3, -2.2, 0.5]]).repeat(40, 1)
+    model.eval()
+    d = torch.nn.functional.normalize(torch.randn(40, 3) * 0.3 + (-o / o.norm(dim=1, keepdim=True)), dim=1)
+    steps = box_steps(model.occupancy, model.config.render_step)
+    for k in (3, 64):  # rays that fill up, and rays that end within the round
+        (ts, dts, counts, state, counter), (ts0, dts0, counts0, state0, _) = _march_both(model, o, d, k, steps)
+        assert counter.by_op["kernel:march"] == 1 and counter.launches <= 4 and counter.syncs == 0
+        assert counts.sum() > 0 and torch.equal(counts, counts0)
+        assert (counts[torch.arange(40) % 5 == 0] == 0).all()
+        assert torch.equal(ts, ts0) and torch.equal(dts, dts0)
+        assert torch.equal(state.phase, state0.phase) and torch.equal(state.j, state0.j)
+        assert torch.equal(state.t, state0.t)
+        if k == 3:
+            assert (counts == 3).any() and (state.phase < 3).any()  # rays left to march on
+        if unbounded:
+            far = (o[:, None, :] + d[:, None, :] * ts[..., None]).abs().amax(-1) > 2.0
+            assert (far & (torch.arange(k) < counts[:, None])).any()  # samples in the background

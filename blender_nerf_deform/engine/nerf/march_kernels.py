@@ -374,7 +374,13 @@ def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box
     segment is at most `box_steps` long, so a ray's box segment ends within one round unless it fills k), each
     followed by `bg_per_block` background steps; a ray whose background is longer goes on next round. No
     compaction: rays that are done or full are masked, and samples past the k-th are written to a spare column.
-    The same samples as `march_round` (the same float32 operations in the same order per ray)."""
+    The same samples as `march_round` (the same float32 operations in the same order per ray). Where Triton
+    runs (`backend.use_triton`), one kernel with the same step budget (march_triton.py)."""
+    if backend.use_triton(o.device):
+        from . import march_triton
+
+        return march_triton.march_round(o, d, alive, active, s, k, g, max(1, -(-box_steps // block)), block,
+                                        bg_per_block)
     dev = o.device
     n = alive.shape[0]
     ts = torch.zeros((n, k + 1), dtype=torch.float32, device=dev)
