@@ -139,3 +139,17 @@ def test_the_march_kernel_places_the_torch_formulations_samples(unbounded):
         if unbounded:
             far = (o[:, None, :] + d[:, None, :] * ts[..., None]).abs().amax(-1) > 2.0
             assert (far & (torch.arange(k) < counts[:, None])).any()  # samples in the background
+
+
+def test_the_spherical_harmonics_kernel_gives_the_torch_values():
+    from blender_nerf_deform.engine.nerf.encoding import sh_encode
+
+    d = torch.nn.functional.normalize(torch.randn(300, 3), dim=1)
+    for degree in (1, 2, 3, 4):
+        with LaunchCounter() as counter:
+            out = sh_encode(d, degree)
+        assert counter.by_op["kernel:sh_encode"] == 1 and counter.launches <= 2
+        with backend.triton_enabled(False):
+            reference = sh_encode(d, degree)
+        torch.testing.assert_close(out, reference, atol=0, rtol=0)
+    assert sh_encode(d.requires_grad_(), 4).requires_grad  # a gradient in the directions: the torch formulation

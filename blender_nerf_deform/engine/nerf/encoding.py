@@ -220,6 +220,10 @@ def sh_encode(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
     if (d.device.type == "cpu" and d.dtype == torch.float32 and not d.requires_grad and backend.use_kernels(d.device)
             and 1 <= degree <= 4):
         return encoding_kernels.sh_forward(d, degree)
+    if d.dtype == torch.float32 and not d.requires_grad and 1 <= degree <= 4 and backend.use_triton(d.device):
+        from . import sh_triton
+
+        return sh_triton.sh_encode(d, degree)
     x, y, z = d.unbind(-1)
     out = [torch.full_like(x, 0.28209479177387814)]
     if degree > 1:
