@@ -11,7 +11,12 @@
 # 5. Ground-truth deformation benchmark on CUDA, reusing the Cycles ground truth made beforehand on a
 #    machine with Blender (GT: a --work folder of tools/bench/bending_groundtruth.py); trains anew.
 #
-# DEVICE=cpu runs the same steps on the CPU, to check the script before spending GPU time on it.
+# 0. Kernel launches and host-device syncs per training step and per frame on the CUDA code path
+#    (tools/bench/cuda_launches.py; on the CPU it counts the same code path).
+# 6. The fox at 1/2 for 60 s, 7. one 1920x1080 lego frame at rest and bent (tools/bench/frame_1080.py).
+#
+# DEVICE=cpu runs the same steps on the CPU, to check the script before spending GPU time on it
+# (TRAIN_S=10 WARM=50 FOX_S=10 REPS=1 EVERY=50 TETS=5000 for a quick dry run).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-python3}
@@ -27,6 +32,10 @@ step() { echo "=== $(date +%T) $*"; }
 step machine
 [ "$DEVICE" = cuda ] && nvidia-smi -L
 $PY -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'numpy', numpy.__version__)"
+
+step "0. launches and syncs of the CUDA code path, on $DEVICE"
+$PY tools/bench/cuda_launches.py --device "$DEVICE" --data "$DATA" --warm-steps "${WARM:-300}" --json "$OUT/launches_$DEVICE.json" \
+    2>&1 | grep -E '"(launches_mean|launches_max|syncs_mean|syncs_max|launches|syncs|rounds|launches_per_megapixel|syncs_per_round)"'
 
 step "1. train lego on $DEVICE for ${TRAIN_S}s"
 $PY tools/bench/nerf_train.py --device "$DEVICE" --data "$DATA" --seconds "$TRAIN_S" --at "30,60,$TRAIN_S" \
@@ -51,4 +60,11 @@ if [ -n "${GT:-}" ]; then
     $PY tools/bench/bending_groundtruth.py --work "$W/gt" --reuse --device "$DEVICE" --train-seconds "$TRAIN_S" 2>&1 | tail -n 16 | tee "$OUT/groundtruth.txt"
     cp "$W/gt/results.json" "$OUT/groundtruth_$DEVICE.json" 2>/dev/null
 fi
+step "6. fox at 1/2 on $DEVICE for ${FOX_S:-60}s"
+$PY tools/bench/nerf_train.py --device "$DEVICE" --data "${FOX:-../shared/datasets/fox}" --downscale 2 \
+    --seconds "${FOX_S:-60}" --at "${FOX_S:-60}" --json "$OUT/fox_$DEVICE.json" 2>&1 | tail -n 4
+
+step "7. a 1920x1080 lego frame, rest and bent"
+$PY tools/bench/frame_1080.py --device "$DEVICE" --lego-run "$W/lego" --lego-data "$DATA" --paths fast --reps "${REPS:-2}" \
+    --json "$OUT/frame_1080_$DEVICE.json" 2>&1 | tail -n 12
 step done

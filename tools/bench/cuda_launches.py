@@ -38,17 +38,21 @@ def twisted(rest, aabb, turns=0.15):
 
 
 def count_rounds():
-    """Counts calls of march_kernels.march_round (one per render round) while the bench runs."""
+    """Counts the render rounds (calls of march_kernels.march_round, or of march_round_device on the device
+    path: one march of the live rays each) while the bench runs."""
     from blender_nerf_deform.engine.nerf import march_kernels
 
     calls = {"n": 0}
-    original = march_kernels.march_round
+    for name in ("march_round", "march_round_device"):
+        original = getattr(march_kernels, name, None)
+        if original is None:
+            continue
 
-    def counted(*args, **kwargs):
-        calls["n"] += 1
-        return original(*args, **kwargs)
+        def counted(*args, _original=original, **kwargs):
+            calls["n"] += 1
+            return _original(*args, **kwargs)
 
-    march_kernels.march_round = counted
+        setattr(march_kernels, name, counted)
     return calls
 
 
@@ -85,9 +89,9 @@ def main() -> int:
     warm.model.encoding.fused_grad = False
     warm_s = time.perf_counter() - t0
     model = model.to(args.device)
-    out = {"data": args.data, "warm_steps": args.warm_steps, "device": args.device, "warm_seconds": round(warm_s, 1),
-           "triton_interpreter": backend.triton_interpreted() if hasattr(backend, "triton_interpreted") else False}
+    out = {"data": args.data, "warm_steps": args.warm_steps, "device": args.device, "warm_seconds": round(warm_s, 1)}
     with backend.forced("torch"):
+        out["triton"] = backend.use_triton(args.device) if hasattr(backend, "use_triton") else False
         trainer = Trainer(model, train, TrainOptions(steps=args.warm_steps + args.count_steps))
         trainer.load_state_dict(warm.state_dict())
         steps = []

@@ -25,6 +25,8 @@ the legacy path (same frame) is reported for every frame.
 
 from __future__ import annotations
 
+DEVICE = "cpu"  # where the NeRF renders (--device)
+
 import argparse
 import json
 import math
@@ -149,7 +151,7 @@ def bench_scene(name, scene, paths, reps, save: Path | None, no_step_refine: boo
     from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
 
     ckpt, camera, solve, rest, tets, info = scene
-    model = load_nerf(ckpt, device="cpu")
+    model = load_nerf(ckpt, device=DEVICE)
     mp = camera.width * camera.height / 1e6
     posed = PosedRenderer(model, rest, tets)
     deformed, _ = solve()
@@ -274,7 +276,10 @@ def main(argv=None) -> int:
                     help="also render this many lego dataset views at the dataset's size on every path: PSNR vs the "
                          "dataset (white) and vs the legacy path")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
     args = ap.parse_args(argv)
+    global DEVICE
+    DEVICE = args.device
     if not (args.demo or args.lego_run):
         ap.error("give --demo and/or --lego-run")
     import torch
