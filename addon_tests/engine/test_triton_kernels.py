@@ -153,3 +153,34 @@ def test_the_spherical_harmonics_kernel_gives_the_torch_values():
             reference = sh_encode(d, degree)
         torch.testing.assert_close(out, reference, atol=0, rtol=0)
     assert sh_encode(d.requires_grad_(), 4).requires_grad  # a gradient in the directions: the torch formulation
+
+
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_the_march_setup_kernel_gives_the_torch_state(unbounded):
+    from blender_nerf_deform.engine.nerf import renderer
+    from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+
+    torch.manual_seed(6)
+    model = NerfModel(NerfConfig(contraction="linf" if unbounded else "none", log2_table_size=10,
+                                 finest_resolution=32, occ_resolution=16, steps_per_diagonal=64))
+    with torch.no_grad():
+        model.occupancy.mask[:] = torch.rand(model.occupancy.mask.shape) < 0.02  # a few cells, off centre
+    model.occupancy.mask[0] = True
+    model.occupancy._bounds = None
+    o = torch.randn(64, 3) * 2.0
+    d = torch.nn.functional.normalize(torch.randn(64, 3), dim=1)
+    d[0] = torch.tensor([0.0, 0.0, 1.0])  # axis-parallel: zero components
+    o[1] = torch.tensor([float("nan"), 0.0, 0.0])
+    grids = renderer._grids(model, model.occupancy, model.config.render_step, background=True)
+    assert grids.has_bg == unbounded
+    states = []
+    for triton_on in (True, False):
+        torch.manual_seed(7)
+        with backend.triton_enabled(triton_on), LaunchCounter() as counter:
+            states.append(renderer.march_setup(o, d, model.occupancy, grids, 0.05, True))
+        if triton_on:
+            assert counter.by_op["kernel:march_setup"] == 1 and counter.syncs == 0
+    for name in ("phase", "j", "j_end", "t", "t_in", "t_out", "t_far", "u"):
+        torch.testing.assert_close(getattr(states[0], name), getattr(states[1], name), atol=0, rtol=0,
+                                   equal_nan=True, msg=name)
+    assert (states[0].phase < 3).sum() > 5 and (states[0].phase == 3).any()

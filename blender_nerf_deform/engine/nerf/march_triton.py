@@ -140,6 +140,92 @@ def _march(o_ptr, d_ptr, alive_ptr, active_ptr, phase_ptr, j_ptr, t_ptr, j_end_p
     tl.store(counts_ptr + lanes, count, mask=valid)
 
 
+@triton.jit
+def _ray_box(ox, oy, oz, ix, iy, iz, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z):
+    """renderer.ray_box: entry and exit distances through the box (exit <= entry: a miss)."""
+    ax = (lo_x - ox) * ix
+    bx = (hi_x - ox) * ix
+    ay = (lo_y - oy) * iy
+    by = (hi_y - oy) * iy
+    az = (lo_z - oz) * iz
+    bz = (hi_z - oz) * iz
+    near = tl.maximum(tl.maximum(tl.minimum(ax, bx), tl.minimum(ay, by)), tl.minimum(az, bz))
+    far = tl.minimum(tl.minimum(tl.maximum(ax, bx), tl.maximum(ay, by)), tl.maximum(az, bz))
+    return near, far
+
+
+@triton.jit
+def _inverse(v):
+    return 1.0 / tl.where(tl.abs(v) < 1e-12, 1e-12, v)
+
+
+@triton.jit
+def _setup(o_ptr, d_ptr, u_ptr, box_ptr, center_ptr, inv_half_ptr, phase_ptr, j_ptr, j_end_ptr, t_ptr, t_in_ptr,
+           t_out_ptr, t_far_ptr, n, near, step, max_steps, far_radius, HAS_BG: tl.constexpr, BLOCK: tl.constexpr):
+    rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    valid = rays < n
+    ox = tl.load(o_ptr + rays * 3, mask=valid, other=0.0)
+    oy = tl.load(o_ptr + rays * 3 + 1, mask=valid, other=0.0)
+    oz = tl.load(o_ptr + rays * 3 + 2, mask=valid, other=0.0)
+    ix = _inverse(tl.load(d_ptr + rays * 3, mask=valid, other=1.0))
+    iy = _inverse(tl.load(d_ptr + rays * 3 + 1, mask=valid, other=1.0))
+    iz = _inverse(tl.load(d_ptr + rays * 3 + 2, mask=valid, other=1.0))
+    u = tl.load(u_ptr + rays, mask=valid, other=0.5)
+    t_in, t_out = _ray_box(ox, oy, oz, ix, iy, iz, tl.load(box_ptr), tl.load(box_ptr + 1), tl.load(box_ptr + 2),
+                           tl.load(box_ptr + 3), tl.load(box_ptr + 4), tl.load(box_ptr + 5))
+    t_in = tl.maximum(t_in, near)
+    hit = t_out > t_in
+    # Lattice indices of the first sample at or after the entry and one past the last before the exit.
+    u64 = u.to(tl.float64)
+    j0 = tl.ceil(t_in.to(tl.float64) / step - u64)
+    j1 = tl.ceil(t_out.to(tl.float64) / step - u64)
+    finite = (tl.abs(j0) < float("inf")) & (tl.abs(j1) < float("inf"))  # (NaN fails both)
+    bad = ~hit | ~finite | (j1 - j0 > max_steps)
+    j0 = tl.where(bad, 0.0, tl.minimum(tl.maximum(j0, -max_steps), max_steps))
+    j1 = tl.where(bad, 0.0, tl.minimum(tl.maximum(j1, -max_steps), max_steps))
+    j1 = tl.maximum(j0, j1)
+    if HAS_BG:
+        cx = tl.load(center_ptr)
+        cy = tl.load(center_ptr + 1)
+        cz = tl.load(center_ptr + 2)
+        rx = far_radius / tl.load(inv_half_ptr)
+        ry = far_radius / tl.load(inv_half_ptr + 1)
+        rz = far_radius / tl.load(inv_half_ptr + 2)
+        _, t_far = _ray_box(ox, oy, oz, ix, iy, iz, cx - rx, cy - ry, cz - rz, cx + rx, cy + ry, cz + rz)
+        t_far = tl.where(tl.abs(t_far) < float("inf"), t_far, near)
+        t_in = tl.where(hit, t_in, t_far)
+        t_out = tl.where(hit, t_out, t_far)
+        phase = tl.where(t_far > near, PHASE_BEFORE, PHASE_DONE)
+    else:
+        t_far = t_out
+        phase = tl.where(hit, PHASE_INNER, PHASE_DONE)
+    tl.store(phase_ptr + rays, phase.to(tl.int8), mask=valid)
+    tl.store(j_ptr + rays, j0.to(tl.int64), mask=valid)
+    tl.store(j_end_ptr + rays, j1.to(tl.int64), mask=valid)
+    tl.store(t_ptr + rays, tl.zeros_like(t_in) + near, mask=valid)
+    tl.store(t_in_ptr + rays, t_in, mask=valid)
+    tl.store(t_out_ptr + rays, t_out, mask=valid)
+    tl.store(t_far_ptr + rays, t_far, mask=valid)
+
+
+def march_setup(o, d, u, box, g, near: float, max_steps: int, far_radius: float):
+    """renderer.march_setup's state in one kernel, given the offsets u and the occupied bounds `box` (2, 3):
+    (phase, j, j_end, t, t_in, t_out, t_far)."""
+    n, dev = o.shape[0], o.device
+    f32 = dict(dtype=torch.float32, device=dev)
+    phase = torch.empty(n, dtype=torch.int8, device=dev)
+    j, j_end = torch.empty(n, dtype=torch.int64, device=dev), torch.empty(n, dtype=torch.int64, device=dev)
+    t, t_in, t_out, t_far = (torch.empty(n, **f32) for _ in range(4))
+    if n:
+        center, inv_half = (g.center, g.inv_half) if g.has_bg else (g.lo, g.scale)
+        with kernel_launch("march_setup"):
+            _setup[(triton.cdiv(n, BLOCK),)](o.contiguous(), d.contiguous(), u, box.contiguous(), center, inv_half,
+                                             phase, j, j_end, t, t_in, t_out, t_far, n, float(near), float(g.step),
+                                             float(max_steps), float(far_radius), HAS_BG=bool(g.has_bg),
+                                             BLOCK=BLOCK)
+    return phase, j, j_end, t, t_in, t_out, t_far
+
+
 def march_round(o, d, alive, active, s, k: int, g, n_blocks: int, block_steps: int, bg_per_block: int):
     """Up to k next samples of each ray in `alive` whose `active` is True, in `n_blocks` blocks of up to
     `block_steps` lattice steps and `bg_per_block` background steps: (t (A, k), dt (A, k), counts (A,)),

@@ -158,6 +158,12 @@ def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyG
     """
     n, dev, step = origins.shape[0], origins.device, grids.step
     u = torch.rand(n, device=dev) if perturb else torch.full((n,), 0.5, device=dev)
+    if backend.use_triton(dev) and origins.dtype == dirs.dtype == torch.float32:
+        from . import march_triton
+
+        phase, j0, j1, t, t_in, t_out, t_far = march_triton.march_setup(
+            origins, dirs, u, occupancy.bounds(), grids, near, march_kernels.MAX_STEPS_PER_RAY, FAR_RADIUS)
+        return march_kernels.MarchState(phase=phase, j=j0, j_end=j1, t=t, t_in=t_in, t_out=t_out, t_far=t_far, u=u)
     # (The device path does not ask whether any cell is occupied, a read back: with none, the bounds are the
     # whole box and the march finds no sample.)
     if not backend.use_kernels(dev) or occupancy.any():
