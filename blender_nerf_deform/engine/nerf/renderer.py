@@ -564,24 +564,35 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
                 sigma = sigma * live
                 if scale is not None:
                     sigma = sigma * scale
-                tau = sigma * dt
-                trans = _segment_exclusive(tau, row, first) * transmittance[ray_idx].to(tau.dtype)
                 n_density = n_density + live.sum()
-            if grad:
-                # The samples a ray can still see: the only ones whose gradient is not ~0.
-                seen = (trans > early_stop_eps) & (sigma > 0)
-                factor = seen.to(sigma.dtype) if scale is None else seen * scale
-                kept = (ray_idx, t, dt, enc, xn, sdirs, factor, seen, row, first)
+            codes = None if appearance is None or grad else appearance[ray_idx]  # (training: the second pass)
+            if not grad and backend.use_triton(dev):
+                # The round's compositing in one kernel (weights, pixels, the transmittance carried on).
+                from . import composite_triton
+
+                rgb = _blocked_color(model, geo, sdirs, codes)
+                n_color = n_color + composite_triton.composite_round(sigma, dt, t, rgb, first, counts, alive,
+                                                                     transmittance, color, alpha, depth,
+                                                                     weight_threshold)
             else:
-                w = trans * (1.0 - torch.exp(-tau))
-                lit = w > weight_threshold
-                rgb = _blocked_color(model, geo, sdirs, None if appearance is None else appearance[ray_idx])
-                w = torch.where(lit, w, 0.0)
-                color.index_add_(0, ray_idx, w[:, None] * rgb)
-                alpha.index_add_(0, ray_idx, w)
-                depth.index_add_(0, ray_idx, w * t)
-                n_color = n_color + lit.sum()
-            transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
+                with torch.no_grad():
+                    tau = sigma * dt
+                    trans = _segment_exclusive(tau, row, first) * transmittance[ray_idx].to(tau.dtype)
+                if grad:
+                    # The samples a ray can still see: the only ones whose gradient is not ~0.
+                    seen = (trans > early_stop_eps) & (sigma > 0)
+                    factor = seen.to(sigma.dtype) if scale is None else seen * scale
+                    kept = (ray_idx, t, dt, enc, xn, sdirs, factor, seen, row, first)
+                else:
+                    w = trans * (1.0 - torch.exp(-tau))
+                    lit = w > weight_threshold
+                    rgb = _blocked_color(model, geo, sdirs, codes)
+                    w = torch.where(lit, w, 0.0)
+                    color.index_add_(0, ray_idx, w[:, None] * rgb)
+                    alpha.index_add_(0, ray_idx, w)
+                    depth.index_add_(0, ray_idx, w * t)
+                    n_color = n_color + lit.sum()
+                transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
         if grad:
             break
         # Rays march on unless done or spent; how many (n_live) came with the round's read back.
