@@ -96,7 +96,11 @@ def guard_classes(classes) -> None:
 def say_once(where: str, error: Exception) -> str:
     """The one line for `error` at `where`, its traceback logged and the line printed, the first time this
     error comes from there; "" after that."""
-    key = (where, type(error).__name__, str(error))
+    try:
+        text = str(error)
+    except Exception:  # an exception whose own text fails is still said once
+        text = ""
+    key = (where, type(error).__name__, text)
     if key in _said:
         return ""
     _said.add(key)

@@ -22,6 +22,7 @@ to it, so it is not saved either.
 """
 
 import bpy
+import numpy as np
 from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
 
@@ -172,7 +173,8 @@ def to_nerf_frame(nerf: bpy.types.Object, matrix_world=None):
     try:
         return matrix.inverted()
     except ValueError:
-        scale = ", ".join(f"{x:.3g}" for x in matrix.to_scale())
+        # In float64: Matrix.to_scale squares float32 values, which shows a scale of 1e-20 as 0.
+        scale = ", ".join(f"{x:.3g}" for x in np.linalg.norm(np.array(matrix, dtype=np.float64)[:3, :3], axis=0))
         raise PlacementError(
             f"NeRF object '{nerf.name}' has a zero scale ({scale}): the NeRF cannot be placed; "
             "give it a non-zero scale (Object Properties > Transform > Scale)"

@@ -59,7 +59,8 @@ def region_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
     if surface.mode != "OBJECT":
         _region_cache.clear()
         return group_vertices(surface, group_name)
-    key = (surface.data.session_uid, group_name, len(surface.data.vertices))
+    # The groups' names too: a group renamed (its list in the UI, a script) is not this region any more.
+    key = (surface.data.session_uid, group_name, len(surface.data.vertices), tuple(g.name for g in surface.vertex_groups))
     if key not in _region_cache:
         _region_cache[key] = group_vertices(surface, group_name)
     return _region_cache[key]
@@ -88,14 +89,17 @@ def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=No
     as evaluated in `depsgraph` (a frame being rendered) or as the objects are now. `to_nerf`: the
     NeRF's world -> NeRF frame Matrix as evaluated there, when the caller has it (a frame's pose
     computes it once for all its handles). A NeRF scaled to zero has no frame: PlacementError naming it."""
+    # The rest matrix is stored data, read from the handle itself: an evaluated copy may hold an older one
+    # (a change of a property group does not re-evaluate the object).
+    rest = np.reshape(handle.original.nerf_deform.rest_matrix, (4, 4))
     if depsgraph is not None:
         handle = handle.evaluated_get(depsgraph)
     if to_nerf is None:
         to_nerf = to_nerf_frame(nerf, (nerf.evaluated_get(depsgraph) if depsgraph is not None else nerf).matrix_world)
-    rest = np.reshape(handle.nerf_deform.rest_matrix, (4, 4))
-    if not np.isfinite(rest).all():
+    if not np.isfinite(rest).all() or abs(np.linalg.det(rest[:3, :3])) < 1e-12 or not np.allclose(rest[3], [0, 0, 0, 1]):
         raise PlacementError(f"handle '{handle.name}': its rest matrix (stored when it was made) is damaged "
-                             f"({rest[:3, 3].tolist()}); remove the handle and add it again")
+                             f"({'not invertible' if np.isfinite(rest).all() else 'not finite'}: "
+                             f"{np.round(rest, 6).tolist()}); remove the handle and add it again")
     world = np.array(handle.matrix_world)
     if not np.isfinite(world).all():
         location = ", ".join(f"{x:g}" for x in world[:3, 3])

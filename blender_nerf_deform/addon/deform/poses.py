@@ -11,8 +11,8 @@ import bpy
 import numpy as np
 
 from ...engine.service.protocol import content_key
-from ..data.cage_store import cage_pins, deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
-from ..data.properties import PIN_GROUP, handles_of
+from ..data.cage_store import CageDataError, cage_pins, deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
+from ..data.properties import PIN_GROUP, PlacementError, handles_of
 from .handles import handle_target, region_vertices
 
 
@@ -29,7 +29,20 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
     surface = s.surface
     if not handles or surface is None or s.cage is None:
         return None
+    if surface.type != "MESH":  # a script set it: the handles' vertex groups are on no mesh
+        raise CageDataError(f"NeRF object '{nerf.name}': its extracted mesh is set to '{surface.name}', "
+                            f"{'an' if surface.type[0] in 'AEIOU' else 'a'} {surface.type.lower()}, not a mesh; set it back to the mesh (or Extract Mesh and "
+                            "Build Cage again)")
     regions = [region_vertices(surface, h.nerf_deform.region) for h in handles]
+    for handle, region in zip(handles, regions):
+        if not len(region):
+            group = h_name = handle.nerf_deform.region
+            if surface.vertex_groups.get(group) is None:
+                why = f"names vertex group '{h_name}', which '{surface.name}' does not have (renamed or deleted?)"
+            else:
+                why = f"has no vertices: its vertex group '{group}' of '{surface.name}' is empty"
+            raise PlacementError(f"handle '{handle.name}' {why}: name the group back, or remove the handle and add it "
+                                 "again on a selection")
     region_arrays = {
         "handle_index": np.concatenate(regions) if regions else np.zeros(0, np.int64),
         "handle_counts": np.array([len(r) for r in regions], dtype=np.int64),
@@ -60,8 +73,11 @@ def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict, dict]:
     vertices as its modifiers deform them. No cage, or no handle: the rest pose.
     """
     s = nerf.nerf_deform
-    if s.cage is None or not has_cage(s.cage.data):
+    if s.cage is None:
         return {"kind": "rest"}, {}, {}
+    if s.cage.type != "MESH" or not has_cage(s.cage.data):  # set by a script, or its mesh swapped: not a render at rest
+        raise CageDataError(f"NeRF object '{nerf.name}': its cage is set to '{s.cage.name}', which holds no NeRF cage "
+                            "(not one Build Cage made); select the NeRF and run Build Cage again")
     if s.deformation_mode == "MODIFIERS":
         deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph, to_nerf)
         return {"kind": "cage"}, {"deformed_vertices": deformed}, {"cage": shared_cage(s.cage.data)}

@@ -15,7 +15,10 @@ there, another NeRF's bake or anything else is left alone, with an error saying 
 name where a file name can keep it whole (letters, digits, spaces, `-_.`); otherwise the characters
 it cannot keep become `_` and a short hash of the exact name follows, so two objects never share a
 file ("Statue/A" and "Statue_A"). A frame's file is the same bytes whichever process baked it, so a
-farm can bake ranges in parallel (`-s/-e` with `api.bake_volume`).
+farm can bake ranges in parallel (`-s/-e` with `api.bake_volume`). Frames run from 0 to Blender's last
+(a volume sequence reads no minus sign); the folder starts with `//` (the .blend's) or is absolute,
+never relative to Blender's working directory. The Volume object is marked as the bake's and follows
+its NeRF through renames, so a re-bake never adds a second one.
 
 Units: the grids' transform is in the NeRF's frame and the Volume object is a child of the NeRF
 object with no offset; density is written per unit length of the Blender world (the NeRF's density
@@ -26,6 +29,7 @@ scene-linear (the NeRF's sRGB colours decoded), as Blender's renders are.
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import bpy
@@ -33,7 +37,7 @@ import numpy as np
 
 from ...engine.bend.baked_volume import MAX_RESOLUTION
 from ...engine.errors import EngineError
-from ...engine.files import StagedFiles
+from ...engine.files import StagedFiles, check_writable
 from ...engine.memory import available_memory, gib
 from ..data.cage_store import has_cage, load_cage
 from ..data.images import srgb_to_linear
@@ -41,7 +45,7 @@ from ..data.properties import VOLUME_EXTENTS, VOLUME_FRAMES, VOLUME_SHADINGS, On
 from ..edit.regions import region_dict, regions_of
 from ..render.frame import nerf_pose, render_warnings
 from ..worker.jobs import WorkerOperator, WorkerRequest
-from .volume_file import VolumeFileError, check_vdb_replaceable, openvdb_module, write_vdb
+from .volume_file import VolumeFileError, check_vdb_replaceable, openvdb_module, scaled_density, write_vdb
 from .volume_material import volume_material
 
 
@@ -110,10 +114,24 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
             self._frames = list(range(self.frame_start, self.frame_end + 1))
         else:
             self._frames = [scene.frame_current]
+        # Blender reads no minus sign in a volume sequence's frame numbers (frame -1's file would play at
+        # frame 1), and a scene goes to no frame beyond MAXFRAME (frame_set would bake that one instead).
+        last = scene.bl_rna.properties["frame_current"].hard_max
+        for frame in (self._frames[0], self._frames[-1]):
+            if frame < 0:
+                raise ValueError(f"frame {frame} cannot be baked: Blender reads no negative frame number in a volume "
+                                 f"sequence (its file would play at frame {-frame}); bake frames from 0 to {last}")
+            if frame > last:
+                raise ValueError(f"frame {frame} cannot be baked: Blender's frames end at {last}; bake frames from 0 "
+                                 f"to {last}")
         self._region = self._chosen_region(nerf) if self.extent == "REGION" else None
         if not self.directory or (self.directory.startswith("//") and not bpy.data.filepath):
             raise ValueError("save the .blend first, or give the bake an absolute folder: // is the .blend's folder")
-        self._out = Path(bpy.path.abspath(self.directory))
+        if not self.directory.startswith("//") and not os.path.isabs(os.path.expanduser(self.directory)):
+            # Relative to Blender's working directory, which the artist neither sees nor chose.
+            raise ValueError(f"the folder {self.directory!r} is relative: start it with // for the .blend's folder "
+                             "(//" + self.directory.lstrip("./") + "), or give an absolute folder")
+        self._out = Path(os.path.expanduser(bpy.path.abspath(self.directory)))
         self._check_memory()
         openvdb_module()  # no OpenVDB: say so before any work
         self._targets = {frame: self._out / volume_file_name(nerf.name, frame) for frame in self._frames}
@@ -135,9 +153,10 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         if not existing.is_dir():
             raise ValueError(f"cannot write to {self._out}: {existing} is not a folder")
         try:
+            check_writable(self._out, folder=True)  # a read-only folder: said before any frame is baked
             for target in self._targets.values():
                 check_vdb_replaceable(target, owner=self._nerf_name)
-        except VolumeFileError as error:
+        except (VolumeFileError, EngineError) as error:
             raise ValueError(str(error)) from None
 
     def _nerf(self) -> bpy.types.Object:
@@ -218,7 +237,8 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
             self._warnings.extend(render_warnings(self._nerf_name, frame, result))
             write_vdb(self._staged.temporary(self._targets[frame]), result["shape"],
                       np.asarray(result["index_to_nerf"], dtype=np.float64), arrays["index"],
-                      arrays["density"] / self._scale, srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)),
+                      scaled_density(arrays["density"], self._scale, f"frame {frame}: NeRF object '{self._nerf_name}'"),
+                      srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)),
                       where=f"frame {frame}", owner=self._nerf_name)
         except (ValueError, EngineError) as error:  # VolumeFileError is a ValueError
             return self._fail(error)
@@ -266,11 +286,16 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
             bpy.context.scene.frame_set(before)
 
 
+VOLUME_MARK = "nerf_deform_volume"  # object ID property: made by Bake Volume for its parent NeRF
+
+
 def volume_of(nerf) -> bpy.types.Object | None:
-    """The Volume object an earlier bake made for `nerf` (a child of it named after it), if any."""
+    """The Volume object an earlier bake made for `nerf`, if any: a child of it that Bake Volume marked
+    (whatever either is named now: a NeRF renamed since keeps one volume, not two that render it twice),
+    or, from before the mark, one named after it."""
     name = f"{nerf.name} Volume"
-    mine = [o for o in nerf.children if o.type == "VOLUME" and o.library is None and o.name.startswith(name)
-            and not is_deleted(o)]
+    children = [o for o in nerf.children if o.type == "VOLUME" and o.library is None and not is_deleted(o)]
+    mine = [o for o in children if o.get(VOLUME_MARK)] or [o for o in children if o.name.startswith(name)]
     return min(mine, key=lambda o: (o.name != name, o.name)) if mine else None
 
 
@@ -285,6 +310,9 @@ def volume_object(context, nerf, first_file: Path, frames: list[int], shading: s
         obj = bpy.data.objects.new(name, volume)
         for collection in nerf.users_collection:
             collection.objects.link(obj)
+    elif obj.name != name and name not in bpy.data.objects:  # the NeRF was renamed: its volume follows
+        obj.name = name
+    obj[VOLUME_MARK] = True
     volume = obj.data
     path = bpy.path.relpath(str(first_file)) if bpy.data.filepath else str(first_file)
     volume.filepath = path  # setting it (even to the same path) unloads the grids: a re-bake shows

@@ -178,7 +178,7 @@ def check_baked_arrays(shape, index_to_nerf, index, density, color, where: str) 
     if n > int(np.prod(shape.astype(np.int64))):
         refuse(f"it lists {n} voxels, more than its {' x '.join(str(int(x)) for x in shape)} grid holds")
     m = index_to_nerf.astype(np.float64)
-    if not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
+    if not np.isfinite(m).all() or not (m[3] == [0, 0, 0, 1]).all():  # exactly: OpenVDB takes no projection
         refuse("`index_to_nerf` is not a finite affine 4x4 matrix")
     if np.abs(m).max() > MAX_COORDINATE:
         refuse(f"`index_to_nerf` places its voxels beyond {MAX_COORDINATE:g} NeRF units (its largest entry is "
