@@ -201,3 +201,72 @@ def test_the_march_setup_kernel_gives_the_torch_state(unbounded):
         torch.testing.assert_close(getattr(states[0], name), getattr(states[1], name), atol=0, rtol=0,
                                    equal_nan=True, msg=name)
     assert (states[0].phase < 3).sum() > 5 and (states[0].phase == 3).any()
+
+
+def test_the_training_composite_kernels_give_the_torch_values_and_gradients():
+    from blender_nerf_deform.engine.nerf import renderer
+    from blender_nerf_deform.engine.nerf.composite_triton import CompositeTrain
+
+    torch.manual_seed(8)
+    counts = torch.tensor([3, 0, 5, 1, 7, 2])
+    n, total = counts.shape[0], int(counts.sum())
+    size = total - 2  # the last ray's last samples cut, as a full training step cuts them
+    alive = torch.arange(n)
+    first = torch.cumsum(counts, 0) - counts
+    row = torch.repeat_interleave(torch.arange(n), counts)[:size]
+    sigma = (torch.rand(size) * 4).requires_grad_()
+    rgb = torch.rand(size, 3).requires_grad_()
+    dt, t = torch.rand(size) * 0.5, torch.rand(size).cumsum(0)
+    g_color, g_alpha, g_depth, g_w = torch.randn(n, 3), torch.randn(n), torch.randn(n), torch.randn(size)
+
+    def loss(color, alpha, depth, w):
+        return (color * g_color).sum() + (alpha * g_alpha).sum() + (depth * g_depth).sum() + (w * g_w).sum()
+
+    with LaunchCounter() as counter:
+        out = CompositeTrain.apply(sigma, rgb, dt, t, first, counts, alive, n)
+        loss(*out).backward()
+    assert counter.by_op["kernel:composite_train"] == 1 and counter.by_op["kernel:composite_train_backward"] == 1
+    assert counter.syncs == 0
+    grads = sigma.grad.clone(), rgb.grad.clone()
+    sigma.grad = rgb.grad = None
+    tau = sigma * dt
+    w = renderer._segment_exclusive(tau, row, first) * (1.0 - torch.exp(-tau))
+    reference = (renderer._segment_sum(w[:, None] * rgb, row, n), renderer._segment_sum(w, row, n),
+                 renderer._segment_sum(w * t, row, n), w)
+    loss(*reference).backward()
+    for got, want in zip(out, reference):
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(grads[0], sigma.grad, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(grads[1], rgb.grad, atol=1e-6, rtol=1e-5)
+    assert grads[0].abs().sum() > 0 and grads[1].abs().sum() > 0
+
+
+def test_a_training_step_with_the_kernels_waits_once_and_updates_like_the_torch_formulation(tmp_path):
+    from blender_nerf_deform.engine.nerf.dataset import load_dataset
+    from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
+    from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
+
+    from fixtures.sphere_data import write_sphere_dataset
+
+    data = load_dataset(write_sphere_dataset(tmp_path / "train", n_views=3, size=8, seed=0))
+    tiny = {"log2_table_size": 10, "finest_resolution": 32, "occ_resolution": 16, "steps_per_diagonal": 48}
+    results = []
+    for triton_on in (True, False):
+        torch.manual_seed(0)
+        model = NerfModel(NerfConfig(aabb=data.aabb.reshape(-1).tolist(), **tiny))
+        trainer = Trainer(model, data, TrainOptions(steps=10, target_samples=1 << 9, distortion_weight=0.01))
+        with backend.triton_enabled(triton_on):
+            for _ in range(2):
+                with LaunchCounter() as counter:
+                    info = trainer.step()
+                assert counter.syncs == 1, counter.summary()
+        kernels = {op for op in counter.by_op if op.startswith("kernel:")}
+        assert kernels == ({"kernel:hash_forward", "kernel:hash_backward", "kernel:march", "kernel:march_setup",
+                            "kernel:sh_encode", "kernel:composite_train", "kernel:composite_train_backward"}
+                           if triton_on else set())
+        results.append((info, [p.detach().clone() for p in model.parameters()], counter.launches))
+    (info, params, launches), (info0, params0, launches0) = results
+    assert info["samples_per_ray"] == info0["samples_per_ray"] and info["loss"] == pytest.approx(info0["loss"], rel=1e-4)
+    for p, p0 in zip(params, params0):
+        torch.testing.assert_close(p, p0, atol=2e-4, rtol=1e-3)
+    assert launches0 - launches > 200  # what the kernels replace

@@ -616,12 +616,19 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
     sigma, geo = model.features_from_encoding(model.encoding.reuse(enc, xs), inside)
     sigma = sigma * factor
     rgb = model.color(geo, sdirs, None if appearance is None else appearance[ray_idx])
-    tau = sigma * dt
-    trans = _segment_exclusive(tau, row, first)
-    w = trans * (1.0 - torch.exp(-tau))
-    color = _segment_sum(w[:, None] * rgb, ray_idx, n)
-    alpha = _segment_sum(w, ray_idx, n)
-    depth = _segment_sum(w * t, ray_idx, n)
+    if backend.use_triton(dev) and rgb.dtype == sigma.dtype == torch.float32:
+        # Weights and pixels, forward and backward, in one kernel each (the batch is one round: rows are
+        # rays, `counts` and `alive` that round's).
+        from . import composite_triton
+
+        color, alpha, depth, w = composite_triton.CompositeTrain.apply(sigma, rgb, dt, t, first, counts, alive, n)
+    else:
+        tau = sigma * dt
+        trans = _segment_exclusive(tau, row, first)
+        w = trans * (1.0 - torch.exp(-tau))
+        color = _segment_sum(w[:, None] * rgb, ray_idx, n)
+        alpha = _segment_sum(w, ray_idx, n)
+        depth = _segment_sum(w * t, ray_idx, n)
     if samples_out is not None:
         samples_out.append((ray_idx, t, dt, w))
     return color, alpha, depth, n_density, seen.sum()
