@@ -592,7 +592,8 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
                     alpha.index_add_(0, ray_idx, w)
                     depth.index_add_(0, ray_idx, w * t)
                     n_color = n_color + lit.sum()
-                transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
+                if not grad:  # (training marches one round: nothing carries on)
+                    transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
         if grad:
             break
         # Rays march on unless done or spent; how many (n_live) came with the round's read back.
