@@ -99,7 +99,8 @@ def main() -> int:
             with LaunchCounter() as c:
                 info = trainer.step()
             steps.append({"launches": c.launches, "syncs": c.syncs, "rays": info["rays"],
-                          "samples_per_ray": round(info["samples_per_ray"], 1), "top": c.summary(8)["top_launches"],
+                          "samples_per_ray": round(info["samples_per_ray"], 1),
+                          "density_samples_per_ray": round(info.get("density_samples_per_ray", 0.0), 1), "top": c.summary(8)["top_launches"],
                           "syncs_by_op": dict(c.syncs_by_op)})
         launches = [s["launches"] for s in steps]
         syncs = [s["syncs"] for s in steps]
@@ -122,13 +123,15 @@ def main() -> int:
             rounds["n"] = 0
             t = time.perf_counter()
             with LaunchCounter() as c:
-                render_image(model, camera, **kwargs)
+                frame = render_image(model, camera, **kwargs)
             seconds = time.perf_counter() - t
             n_rounds = max(rounds["n"], 1)
             out[name] = {"launches": c.launches, "syncs": c.syncs, "rounds": rounds["n"],
                          "launches_per_megapixel": round(c.launches / megapixels),
                          "syncs_per_round": round(c.syncs / n_rounds, 2),
                          "launches_per_round": round(c.launches / n_rounds, 1), "seconds_cpu": round(seconds, 2),
+                         "samples_per_ray": [round(float(frame.get("density_samples_per_ray", 0)), 2),
+                                             round(float(frame.get("color_samples_per_ray", 0)), 2)],
                          "top": c.summary(10)["top_launches"], "syncs_by_op": dict(c.syncs_by_op)}
     text = json.dumps(out, indent=1)
     print(text)
