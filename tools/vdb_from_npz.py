@@ -56,6 +56,8 @@ def convert(source: Path, out: Path, scale: float) -> None:
     files = sorted(f for f in source.glob("*.npz") if f.is_file()) if source.is_dir() else [source]
     if not files:
         raise EngineError(f"{source} holds no .npz files")
+    if out.exists() and not out.is_dir():  # (check_writable's message names an --out this tool does not have)
+        raise EngineError(f"OUT_DIR {out} exists and is not a folder: give a folder for the .vdb files")
     check_writable(out, folder=True)
     targets = [out / f"{f.stem}.vdb" for f in files]
     try:
