@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from pathlib import Path
 
 import bpy
@@ -53,7 +54,8 @@ def volume_file_stem(nerf_name: str) -> str:
     """The file-name part of a NeRF's volumes: its name when a file name keeps it whole, else the name
     with `_` for what a file name cannot keep, and a hash of the exact name (never two NeRFs alike)."""
     safe = "".join(c if c.isalnum() or c in "-_. " else "_" for c in nerf_name)
-    if safe == nerf_name and safe.strip(" .") == safe and safe:
+    # A name kept whole never ends as a hashed one does ("a_b-3ec69c85" is "a/b"'s): that one is hashed too.
+    if safe == nerf_name and safe.strip(" .") == safe and safe and not re.search(r"-[0-9a-f]{8}$", safe):
         return safe
     digest = hashlib.sha1(nerf_name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
     return f"{safe.strip(' .') or 'NeRF'}-{digest}"
