@@ -128,7 +128,8 @@ def main() -> int:
     ap.add_argument("--masks", default="auto", choices=("auto", "object", "ignore"),
                     help="what the dataset's masks mean (default auto: decided by their shape)")
     ap.add_argument("--min-views", type=int, default=None,
-                    help="cells framed by fewer training cameras are never occupied (default: TrainOptions.min_views)")
+                    help="inner cells that some but fewer than this many training photos see (their rendered depth "
+                         "reaches the cell) hold no density (default: TrainOptions.min_views, off)")
     ap.add_argument("--refine-poses", action="store_true", help="learn a correction of each training photo's pose")
     ap.add_argument("--pose-lr", type=float, default=None, help="its peak learning rate (default: TrainOptions.pose_lr)")
     ap.add_argument("--pose-start", type=float, default=None,
