@@ -846,6 +846,136 @@ def test_errors_nobody_foresaw_end_in_one_message_naming_their_log(setup_blend, 
     assert len(texts) == 3 and all("Traceback (most recent call last)" in t for t in texts)
 
 
+_WHAT_A_SCRIPT_CAN_BREAK = """
+setup, out = {setup!r}, {out!r}
+import os
+from blender_nerf_deform.addon.edit import extract as extract_module, load_nerf as load_module
+
+bpy.ops.wm.open_mainfile(filepath=setup)
+scene = bpy.context.scene
+scene.frame_set(1)
+nerf = first("NERF")
+nerf.nerf_deform.deformation_mode = "MODIFIERS"  # the bakes' poses need no solve (the cage has no modifier)
+
+# Folders: relative to Blender's working directory (no //); a link to nowhere; a pipe where a frame's file goes.
+os.chdir(out)
+bake("relative folder", nerf, "vol")
+os.symlink(out + "/nowhere", out + "/dangling")
+bake("link to nowhere", nerf, out + "/dangling")
+os.makedirs(out + "/pipe")
+os.mkfifo(out + "/pipe/" + volume_file_name(nerf.name, 1))
+bake("pipe in the way", nerf, out + "/pipe")
+outcomes["folders left"] = ("ok", sorted(os.listdir(out)))
+
+# Ranges from scripts: negative frames, frames beyond Blender's last; a range from 0 plays frame for frame.
+bake("negative frames", nerf, out + "/neg", frames="RANGE", frame_start=-2, frame_end=1)
+bake("frames beyond the last", nerf, out + "/far", frames="RANGE", frame_start=2**31 - 2, frame_end=2**31 - 1)
+bake("range from 0", nerf, out + "/zero", frames="RANGE", frame_start=0, frame_end=1)
+volume = [o for o in nerf.children if o.type == "VOLUME"][0]
+played = []
+for frame in (0, 1):
+    scene.frame_set(frame)
+    volume.data.grids.load()
+    played.append(os.path.basename(volume.data.grids.frame_filepath))
+outcomes["played"] = ("ok", played)
+scene.frame_set(1)
+
+# The NeRF renamed between two bakes: its one Volume object follows it (two would render it twice).
+nerf.name = "Statue"
+bake("renamed NeRF", nerf, out + "/zero")
+outcomes["volumes"] = ("ok", sorted(o.name for o in bpy.data.objects if o.type == "VOLUME"))
+
+# An edit region scaled far beyond the NeRF (an empty volume before).
+region = api.add_edit_region(nerf, center=(0, 0, 0), size=(0.5, 0.5, 0.5))
+region.scale = (1e6, 1e6, 1e6)
+bpy.context.view_layer.update()
+bake("huge region", nerf, out + "/region", extent="REGION")
+bpy.data.objects.remove(region)
+
+# Pointers and handle data a script can set: the mesh an Empty, the cage a plain cube, a handle's rest
+# matrix singular or NaN (the bake read the evaluated copy's older value), its vertex group renamed after
+# the bake below read it (the cached region was used).
+nerf.nerf_deform.deformation_mode = "ARAP"
+surface, cage, handle = nerf.nerf_deform.surface, nerf.nerf_deform.cage, first("HANDLE")
+empty = bpy.data.objects.new("Empty", None)
+scene.collection.objects.link(empty)
+nerf.nerf_deform.surface = empty
+render_frame("mesh is an empty", out + "/r.png")
+nerf.nerf_deform.surface = surface
+bpy.ops.mesh.primitive_cube_add()
+nerf.nerf_deform.cage = bpy.context.active_object
+render_frame("cage is a cube", out + "/r.png")
+nerf.nerf_deform.cage = cage
+rest = list(handle.nerf_deform.rest_matrix)
+handle.nerf_deform.rest_matrix = [0.0] * 16
+render_frame("rest matrix singular", out + "/r.png")
+handle.nerf_deform.rest_matrix = rest[:3] + [float("nan")] + rest[4:]
+bake("rest matrix NaN", nerf, out + "/rest")
+handle.nerf_deform.rest_matrix = rest
+bake("handles", nerf, out + "/handles")  # reads (and caches) the handle's region
+surface.vertex_groups[handle.nerf_deform.region].name = "renamed"
+render_frame("group renamed", out + "/r.png")
+surface.vertex_groups["renamed"].name = handle.nerf_deform.region
+outcomes["baked nothing"] = ("ok", [listing(out + "/" + f) for f in ("region", "rest")])
+
+# A NeRF named as another's file name is made ("a_b-3ec69c85" for "a/b"): two files, not one refused.
+from blender_nerf_deform.addon.export.bake_volume import volume_file_stem
+nerf.name = "a/b"
+record("load imposter", bpy.ops.nerf_deform.load_nerf, filepath=bpy.path.abspath(nerf.nerf_deform.checkpoint))
+imposter = bpy.context.active_object
+imposter.name = volume_file_stem("a/b")
+bake("bake a/b", nerf, out + "/names")
+bake("bake its imposter", imposter, out + "/names")
+outcomes["names"] = ("ok", listing(out + "/names"))
+
+# Errors nobody foresaw whose own text fails: in the save handler (the file is still saved), in an operator.
+class Odd(Exception):
+    def __str__(self):
+        raise RuntimeError("no text either")
+def broken(*args):
+    raise Odd()
+rebased, forget = load_module.rebased_path, extract_module.forget_deleted
+load_module.rebased_path = extract_module.forget_deleted = broken
+bpy.ops.wm.save_as_mainfile(filepath=out + "/saved.blend")
+activate(nerf)
+record("extract with a bug", bpy.ops.nerf_deform.extract_mesh)
+load_module.rebased_path, extract_module.forget_deleted = rebased, forget
+outcomes["saved"] = ("ok", os.path.exists(out + "/saved.blend"))
+print("OUTCOMES", json.dumps(outcomes))
+"""
+
+
+def test_paths_ranges_and_stored_pointers_a_script_can_break(setup_blend, tmp_path):
+    logs = tmp_path / "logs"
+    script = _VOLUME_HELPERS + _WHAT_A_SCRIPT_CAN_BREAK.format(setup=str(setup_blend), out=str(tmp_path))
+    proc = run_blender(script, cwd=tmp_path, env={"NERF_DEFORM_LOG_DIR": str(logs)})
+    out = assert_clean(proc)
+    outcomes = _outcomes(out)
+    damaged_handle = r"handle '[^']+': its rest matrix \(stored when it was made\) is damaged \(not {}"
+    _check(outcomes, {
+        "relative folder": r"the folder 'vol' is relative: start it with // for the \.blend's folder \(//vol\)",
+        "link to nowhere": r"dangling is a symbolic link to .*nowhere, which does not exist",
+        "pipe in the way": r"_0001\.vdb: it is not a file \(a pipe",
+        "negative frames": r"frame -2 cannot be baked: Blender reads no negative frame number",
+        "frames beyond the last": r"frame 2147483646 cannot be baked: Blender's frames end at 1048574",
+        "range from 0": "ok", "renamed NeRF": "ok", "handles": "ok", "load imposter": "ok", "bake a/b": "ok", "bake its imposter": "ok",
+        "huge region": r"\(1e\+06 x 1e\+06 x 1e\+06 NeRF units\) at resolution 10 has voxels of .* larger than the NeRF's",
+        "mesh is an empty": r"NeRF object '[^']+': its extracted mesh is set to 'Empty', an empty, not a mesh",
+        "cage is a cube": r"its cage is set to 'Cube', which holds no NeRF cage .* run Build Cage again",
+        "rest matrix singular": damaged_handle.format("invertible"),
+        "rest matrix NaN": "Bake Volume: frame 1: " + damaged_handle.format("finite"),
+        "group renamed": r"names vertex group '[^']+', which '[^']+' does not have \(renamed or deleted\?\)",
+        "extract with a bug": r"Extract Mesh: unexpected error \(Odd: <its message could not be read>\); its traceback is in",
+    })
+    assert outcomes["folders left"][1] == ["dangling", "pipe"]  # nothing in Blender's working directory
+    assert outcomes["played"][1] == ["NeRF run_0000.vdb", "NeRF run_0001.vdb"]
+    assert outcomes["volumes"][1] == ["Statue Volume"]
+    assert outcomes["names"][1] == ["a_b-3ec69c85-d64fa8bc_0001.vdb", "a_b-3ec69c85_0001.vdb"]
+    assert outcomes["baked nothing"][1] == [None, None] and outcomes["saved"][1]
+    assert "load_nerf.make_checkpoint_paths_relative: unexpected error (Odd: <its message could not be read>)" in out
+    assert len(list(logs.glob("*.log"))) == 2
+
+
 def _vdb_tool(*args):
     import subprocess
     import sys
@@ -884,6 +1014,13 @@ def _huge_declared_index(folder):
     return path
 
 
+def _npy_named_npz(folder):
+    _baked(folder, "a.npz")
+    np.save(folder / "b.npy", np.zeros(3))
+    (folder / "b.npy").rename(folder / "b.npz")
+    return folder / "b.npz"
+
+
 _NPZ_CASES = {
     "shape as text": (lambda d: _baked(d, "a.npz", shape=np.array(["4", "4", "4"])), "`shape` holds <U1, not integers"),
     "a declared 32768^3 grid": (lambda d: _baked(d, "a.npz", shape=np.array([32768, 32768, 32768])),
@@ -902,6 +1039,14 @@ _NPZ_CASES = {
                             "b.npz: `density` holds NaN or inf"),
     "Python objects": (lambda d: _baked(d, "a.npz", shape=np.array([{}, {}, {}], object)),
                        "`shape` holds Python objects, not numbers"),
+    # kin found later: written without a word (the last value kept; overflow warnings), or a traceback
+    "a voxel listed twice": (lambda d: _baked(d, "a.npz", index=np.array([[1, 2, 3], [1, 2, 3]], np.int32)),
+                             "`index` lists voxel [1, 2, 3] more than once"),
+    "voxels 1e200 wide": (lambda d: _baked(d, "a.npz", index_to_nerf=np.diag([1e200, 1e200, 1e200, 1.0])),
+                          "places its voxels beyond 1e+09 NeRF units"),
+    "an .npy named .npz": (_npy_named_npz, "b.npz is not a baked volume: a single array, not an .npz archive"),
+    "a last row of 1e-12": (lambda d: _baked(d, "a.npz", index_to_nerf=np.array(
+        [[0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 0.5, 0], [0, 0, 1e-12, 1]])), "`index_to_nerf` is not a finite affine"),
 }
 
 
@@ -935,3 +1080,21 @@ def test_vdb_from_npz_replaces_volumes_only_and_all_at_once(tmp_path):
     _baked(tmp_path / "in", "a.npz", density=np.array([3.0, 5.0], np.float32))
     assert _vdb_tool(tmp_path / "in", out).returncode == 0  # its own earlier files: replaced
     assert (out / "a.vdb").read_bytes() != first and sorted(p.name for p in out.iterdir()) == ["a.vdb", "b.vdb"]
+
+
+def test_vdb_from_npz_refuses_a_pipe_and_a_scale_that_overflows(tmp_path):
+    """A pipe given as the input (a read that never returned); a --scale so small that the densities overflow
+    float32 (an error blaming the file, after a numpy warning)."""
+    import os
+
+    os.mkfifo(tmp_path / "pipe.npz")
+    proc = _vdb_tool(tmp_path / "pipe.npz", tmp_path / "out")
+    assert proc.returncode == 2 and "pipe.npz is not a file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    _baked(tmp_path / "in", "a.npz", density=np.array([1e38, 5.0], np.float32))
+    proc = _vdb_tool(tmp_path / "in", tmp_path / "out", "--scale", "1e-3")
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and proc.stderr.strip() == errors[0], proc.stderr
+    assert "a.npz: --scale 0.001: a scale of 0.001 world units per NeRF unit makes the density 1e+38" in errors[0]
+    assert not (tmp_path / "out").exists()
+    proc = _vdb_tool(tmp_path / "in" / "a.npz", tmp_path / "in" / "a.npz")  # the input as the output folder
+    assert proc.returncode == 2 and "error: OUT_DIR " in proc.stderr and "a.npz exists and is not a folder" in proc.stderr
