@@ -1,5 +1,6 @@
-"""The CUDA code path, run on the CPU (`backend.forced("torch")`): a training step waits for the device once,
-a frame once per render round (and once per chunk for its counts); its frames agree with the CPU kernels'."""
+"""The CUDA code path, run on the CPU (`backend.forced("torch")`) with its torch formulations (no Triton): a
+training step waits for the device once, a frame once per render round (and once per chunk for its counts)
+besides the torch march's reads; its frames agree with the CPU kernels'."""
 
 import numpy as np
 import pytest
@@ -67,9 +68,10 @@ def test_a_frame_waits_once_per_round_and_agrees_with_the_cpu_kernels(model, mon
         device = render_image(model, camera, chunk=300)
     chunks = -(-camera.width * camera.height // 300)
     assert rounds.n >= 2 * chunks  # rays end in different rounds
-    # One read back per round, and per chunk one for its counts and one copy of its pixels.
-    assert counter.syncs <= rounds.n + 2 * chunks, counter.summary()
-    assert set(counter.syncs_by_op) <= {"read_back", "to_host"}
+    # One read back per round, per chunk one for its counts and one copy of its pixels; and without Triton
+    # (here) the torch march's reads between blocks (test_triton_kernels counts a frame on the Triton path).
+    assert set(counter.syncs_by_op) == {"read_back", "to_host", "_local_scalar_dense"}, counter.summary()
+    assert counter.syncs_by_op["read_back"] == rounds.n + chunks and counter.syncs_by_op["to_host"] == chunks
     alpha = device["rgba"][..., 3]
     assert alpha.max() > 0.9 and alpha.min() < 0.01
     if kernels is not None:

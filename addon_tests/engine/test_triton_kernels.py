@@ -96,6 +96,12 @@ def test_a_frame_with_the_kernels_agrees_with_the_cpu_kernels(bent):
         device = render_image(model, camera, **kwargs)
     for kernel in ("hash_forward", "march", "march_setup", "sh_encode", "composite"):
         assert counter.by_op["kernel:" + kernel] >= 1, kernel
+    # The frame is one chunk: a read back per round (one march each), one for its counts, one copy of its pixels
+    # (a bent frame's sample transform, the cage's point location, still waits for the device besides).
+    assert counter.by_op["kernel:march"] >= 2
+    assert counter.syncs_by_op["read_back"] == counter.by_op["kernel:march"] + 1
+    assert counter.syncs_by_op["to_host"] == 1
+    assert bent or counter.syncs == counter.by_op["kernel:march"] + 2
     with backend.forced("auto"):
         kernels = render_image(model, camera, **(_twist(model) if bent else {}))
     mse = float(np.mean((device["rgba"].astype(np.float64) - kernels["rgba"]) ** 2))

@@ -366,7 +366,7 @@ def _march_round_torch(o, d, alive, s: MarchState, k: int, g: Grids, block: int 
 
 
 def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box_steps: int,
-                       block: int = 128, bg_per_block: int = 8):
+                       block: int = 128, bg_per_block: int = 8, settle: bool = False):
     """`march_round` without a host-device sync (the device path): up to k next samples of each ray in `alive`
     whose `active` is True (the others emit none and stay where they are); (t (A, k), dt (A, k), counts (A,)).
 
@@ -375,7 +375,10 @@ def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box
     followed by `bg_per_block` background steps; a ray whose background is longer goes on next round. No
     compaction: rays that are done or full are masked, and samples past the k-th are written to a spare column.
     The same samples as `march_round` (the same float32 operations in the same order per ray). Where Triton
-    runs (`backend.use_triton`), one kernel with the same step budget (march_triton.py)."""
+    runs (`backend.use_triton`), one kernel with the same step budget (march_triton.py), which leaves its loops
+    on the device once no ray is in them. The torch formulation does so with `settle` only: a read back per
+    block (what marching every block for every ray costs on the CPU, where frames render on this formulation
+    in the tests, is far more than the read)."""
     if backend.use_triton(o.device):
         from . import march_triton
 
@@ -394,6 +397,8 @@ def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box
     step = torch.tensor(g.step, dtype=torch.float32, device=dev)
     after = PHASE_AFTER if g.has_bg else PHASE_DONE
     for _ in range(max(1, -(-box_steps // block))):
+        if settle and not bool((active & (ph < PHASE_DONE) & (counts < k)).any()):
+            break
         inner = active & (ph == PHASE_INNER) & (counts < k)
         jj = j[:, None] + offsets  # (A, B)
         valid = (jj < j_end[:, None]) & inner[:, None]

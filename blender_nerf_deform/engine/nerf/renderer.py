@@ -549,7 +549,9 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
         else:
             k = FRAME_ROUND_K[min(rounds, len(FRAME_ROUND_K) - 1)]
             k = max(FRAME_ROUND_K[0], min(k, FRAME_ROUND_BUDGET // alive.numel()))
-            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps)
+            # (Frames on the torch formulation, without Triton: the march may wait for the device per block.)
+            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps,
+                                                               settle=True)
             marching = active & (state.phase[alive] < march_kernels.PHASE_DONE)
             size, n_live = (int(v) for v in read_back(counts.sum(), marching.sum()))  # the round's one sync
         rounds += 1
