@@ -18,7 +18,7 @@
 # DEVICE=cpu runs the same steps on the CPU, to check the script before spending GPU time on it
 # (TRAIN_S=10 WARM=50 FOX_S=10 REPS=1 EVERY=50 TETS=5000 for a quick dry run).
 set -uo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."  # the repository root
 PY=${PY:-python3}
 DATA=${DATA:-../shared/datasets/lego_200}
 TRAIN_S=${TRAIN_S:-120}
