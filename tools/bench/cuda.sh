@@ -16,7 +16,8 @@
 # 6. The fox at 1/2 for 60 s, 7. one 1920x1080 lego frame at rest and bent (tools/bench/frame_1080.py).
 #
 # DEVICE=cpu runs the same steps on the CPU, to check the script before spending GPU time on it
-# (TRAIN_S=10 WARM=50 FOX_S=10 REPS=1 EVERY=50 TETS=5000 for a quick dry run).
+# (TRAIN_S=60 WARM=20 FOX_S=10 REPS=1 EVERY=50 TETS=5000 for a quick dry run: extraction needs a NeRF of a minute
+# or more to find a surface).
 set -uo pipefail
 cd "$(dirname "$0")/../.."  # the repository root
 PY=${PY:-python3}
