@@ -2,6 +2,8 @@
 gradients as the torch formulation, one launch each, and frames that agree with the CPU kernels'."""
 
 import os
+import re
+import subprocess
 import sys
 
 import numpy as np
@@ -13,28 +15,35 @@ from blender_nerf_deform.engine.launch_count import LaunchCounter
 from blender_nerf_deform.engine.nerf.encoding import HashEncoding
 from blender_nerf_deform.engine.nerf.renderer import Camera, render_image
 
+from fixtures import REPO
 from fixtures.ball_model import ball_model
 from fixtures.sphere_data import look_at
 
 pytestmark = pytest.mark.skipif(not backend.HAVE_TRITON, reason="triton is not installed")
 
 
+# Triton fixes its mode when a kernel module is first imported, and the suite imports them earlier without
+# the interpreter: the kernels' tests run in a fresh process started under it.
+INTERPRETED = os.environ.get("TRITON_INTERPRET") == "1"
+
+
 @pytest.fixture(autouse=True)
-def interpreter():
-    """Triton's interpreter for the test (it must be on when the kernels are first imported)."""
-    before = os.environ.get("TRITON_INTERPRET")
-    early = [n for n in sys.modules if n.startswith("blender_nerf_deform.engine.") and n.endswith("_triton")]
-    if early and before != "1":  # imported without the interpreter by an earlier test: reloading does not undo it
-        pytest.skip(f"{early[0]} was imported in this process without the interpreter: run this file alone")
-    os.environ["TRITON_INTERPRET"] = "1"
-    try:
-        with backend.forced("torch"):
-            yield
-    finally:
-        if before is None:
-            del os.environ["TRITON_INTERPRET"]
-        else:
-            os.environ["TRITON_INTERPRET"] = before
+def interpreter(request):
+    if not INTERPRETED and request.node.name != "test_the_kernels_in_a_fresh_process_under_the_interpreter":
+        pytest.skip("runs in a fresh process under the interpreter (the test below)")
+    with backend.forced("torch"):
+        yield
+
+
+def test_the_kernels_in_a_fresh_process_under_the_interpreter():
+    if INTERPRETED:
+        pytest.skip("this is that process")
+    env = dict(os.environ, TRITON_INTERPRET="1")
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", __file__],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0 and " failed" not in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]
+    passed = re.search(r"(\d+) passed", proc.stdout)
+    assert passed and int(passed.group(1)) >= 10, proc.stdout[-2000:]
 
 
 def test_the_hash_encoding_kernels_give_the_torch_values_and_table_gradient():
