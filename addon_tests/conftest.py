@@ -39,21 +39,32 @@ from fixtures import REPO  # noqa: E402
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from fixtures.trained import sphere_nerf  # noqa: E402,F401  (a small trained NeRF, session-scoped)
 from fixtures.floor_data import floor_nerf  # noqa: E402,F401  (a statue on a floor, rendered by Blender, trained)
-
+from fixtures.trained import sphere_nerf  # noqa: E402,F401  (a small trained NeRF, session-scoped)
 
 # The modules that take minutes, heaviest first (measured: a clean-clone `make test`, BENCHMARKS.md
 # "Test suite"): started first, so that the two xdist workers do not end with one of them running a
 # long module alone. The Makefile passes --no-loadscope-reorder: by default xdist queues the modules
 # with the most tests first, which put the floor NeRF's few tests (a 3-minute fixture) last.
-SLOW_FIRST = ("engine/test_stretch_fidelity.py", "engine/test_region_floor.py", "addon/test_demo.py",
-              "addon/test_bake_volume.py",
-              "engine/test_worker_side_requests.py", "addon/test_worker_setup.py", "engine/test_geometry_cli.py",
-              "engine/test_unbounded.py", "engine/test_hostile_input.py", "engine/test_nerf_train.py",
-              "addon/test_train_nerf.py", "addon/test_animation_cli.py", "addon/test_training_preview.py",
-              "addon/test_hostile_addon.py", "addon/test_worker.py", "addon/test_edit_region.py",
-              "addon/test_build_cage.py")
+SLOW_FIRST = (
+    "engine/test_stretch_fidelity.py",
+    "engine/test_region_floor.py",
+    "addon/test_demo.py",
+    "addon/test_bake_volume.py",
+    "engine/test_worker_side_requests.py",
+    "addon/test_worker_setup.py",
+    "engine/test_geometry_cli.py",
+    "engine/test_unbounded.py",
+    "engine/test_hostile_input.py",
+    "engine/test_nerf_train.py",
+    "addon/test_train_nerf.py",
+    "addon/test_animation_cli.py",
+    "addon/test_training_preview.py",
+    "addon/test_hostile_addon.py",
+    "addon/test_worker.py",
+    "addon/test_edit_region.py",
+    "addon/test_build_cage.py",
+)
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -87,7 +87,9 @@ def build(out_dir: Path, blender_ext: Path | None = None) -> Path:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out-dir", type=Path, default=REPO / "dist", help="where the zip goes (default: dist/)")
-    parser.add_argument("--blender-ext", type=Path, help="path to Blender's blender_ext.py (default: from the bpy module)")
+    parser.add_argument(
+        "--blender-ext", type=Path, help="path to Blender's blender_ext.py (default: from the bpy module)"
+    )
     args = parser.parse_args(argv)
     print(build(args.out_dir, args.blender_ext))
     return 0

@@ -24,7 +24,22 @@ import ast
 import sys
 from pathlib import Path
 
-BLENDER_MODULES = {"bpy", "bpy_extras", "bmesh", "mathutils", "gpu", "gpu_extras", "bgl", "blf", "aud", "addon_utils", "bl_math", "idprop", "imbuf", "freestyle"}
+BLENDER_MODULES = {
+    "bpy",
+    "bpy_extras",
+    "bmesh",
+    "mathutils",
+    "gpu",
+    "gpu_extras",
+    "bgl",
+    "blf",
+    "aud",
+    "addon_utils",
+    "bl_math",
+    "idprop",
+    "imbuf",
+    "freestyle",
+}
 TORCH_MODULES = {"torch", "torchvision", "torchaudio", "functorch", "tinycudann"}
 # What engine modules used by the add-on may import: Blender's Python has numpy and the stdlib.
 ADDON_SAFE = set(sys.stdlib_module_names) | {"numpy"}
@@ -95,7 +110,12 @@ def import_cycle(graph: dict, prefix: str) -> list[str] | None:
         for _line, name in imports:
             for target in _with_parents(name, prefix.split(".")[0]):
                 # A package's own __init__ running its parents is not a cycle back to itself.
-                if target in graph and target.startswith(prefix) and target != module and not module.startswith(target + "."):
+                if (
+                    target in graph
+                    and target.startswith(prefix)
+                    and target != module
+                    and not module.startswith(target + ".")
+                ):
                     targets.add(target)
         edges[module] = sorted(targets)
     state, stack = {}, []
@@ -105,7 +125,7 @@ def import_cycle(graph: dict, prefix: str) -> list[str] | None:
         stack.append(m)
         for n in edges.get(m, ()):
             if state.get(n) == 1:
-                return stack[stack.index(n):] + [n]
+                return stack[stack.index(n) :] + [n]
             if n not in state and (found := visit(n)):
                 return found
         stack.pop()
@@ -121,7 +141,7 @@ def import_cycle(graph: dict, prefix: str) -> list[str] | None:
 def _addon_layer(module: str, addon: str, addon_layers) -> tuple[int, str] | None:
     """(rank, name) of the layer an add-on module belongs to, by its path: addon/<layer>/..., api.py
     on top; None for a module outside every layer."""
-    parts = module[len(addon) + 1:].split(".")
+    parts = module[len(addon) + 1 :].split(".")
     if parts[0] in addon_layers:
         return addon_layers.index(parts[0]), parts[0]
     if len(parts) == 1 and parts[0] in ADDON_TOP:
@@ -148,15 +168,19 @@ def violations(package_root: Path, addon_layers=ADDON_LAYERS) -> list[str]:
         problems.append(f"{graph[cycle[0]][0]}: import cycle in engine/: {' -> '.join(cycle)}")
     reported = set()
     for module, (path, imports) in graph.items():
-        part = module[len(engine) + 1:].split(".")[0] if module.startswith(engine + ".") else ""
+        part = module[len(engine) + 1 :].split(".")[0] if module.startswith(engine + ".") else ""
         for line, name in imports:
             if part in PLUMBING and _top(name) in STAGE_LIBRARIES:
-                problems.append(f"{path}:{line}: engine/{part}/ imports {name}: the command line and the worker "
-                                "hold no stage logic (call a stage function of nerf/, geometry/ or bend/)")
-            target = name[len(engine) + 1:].split(".")[0] if name.startswith(engine + ".") else ""
+                problems.append(
+                    f"{path}:{line}: engine/{part}/ imports {name}: the command line and the worker "
+                    "hold no stage logic (call a stage function of nerf/, geometry/ or bend/)"
+                )
+            target = name[len(engine) + 1 :].split(".")[0] if name.startswith(engine + ".") else ""
             if part and part not in PLUMBING + ("__main__",) and target in PLUMBING and (path, line) not in reported:
                 reported.add((path, line))
-                problems.append(f"{path}:{line}: stage module {module} imports {name} (stages never import engine/cli or engine/service)")
+                problems.append(
+                    f"{path}:{line}: stage module {module} imports {name} (stages never import engine/cli or engine/service)"
+                )
 
     addon = f"{pkg}.addon"
     cycle = import_cycle(graph, addon)
@@ -167,16 +191,20 @@ def violations(package_root: Path, addon_layers=ADDON_LAYERS) -> list[str]:
             continue
         here = _addon_layer(module, addon, addon_layers)
         if here is None:
-            problems.append(f"{path}: {module} is in no layer: put it in one of addon/{{{','.join(addon_layers)}}}/ "
-                            "(tools/check_layering.py, ADDON_LAYERS)")
+            problems.append(
+                f"{path}: {module} is in no layer: put it in one of addon/{{{','.join(addon_layers)}}}/ "
+                "(tools/check_layering.py, ADDON_LAYERS)"
+            )
             continue
         for line, name in imports:
             target = next((t for t in _with_parents(name, pkg) if t.startswith(addon + ".")), None)
             there = _addon_layer(target, addon, addon_layers) if target else None
             if there is not None and there[0] > here[0] and (path, line) not in reported:
                 reported.add((path, line))
-                problems.append(f"{path}:{line}: {module} ({here[1]}) imports {target} ({there[1]}): "
-                                "imports run from higher layers to lower ones only")
+                problems.append(
+                    f"{path}:{line}: {module} ({here[1]}) imports {target} ({there[1]}): "
+                    "imports run from higher layers to lower ones only"
+                )
 
     # A module Blender's Python lacks, reachable from addon/ through any chain of engine modules.
     def reaches_unsafe(module: str, seen: set[str]) -> list[str] | None:

@@ -51,18 +51,32 @@ ARM_BANDS = 6  # colour bands along the arm, 0.25 high each
 REGIONS = {
     "base": {"objects": ["Base"], "bounds": BASE_BOUNDS, "role": "pin"},
     "arm": {"objects": ["Arm", "Flag"], "bounds": ((-0.2, -0.2, -0.5), (0.85, 0.2, 1.0)), "role": "deformable"},
-    "arm_root": {"objects": ["Arm"], "vertex_group": "root", "bounds": ((-0.2, -0.2, -0.5), (0.2, 0.2, -0.25)),
-                 "role": "pin (keeps the arm attached to the base)"},
-    "arm_tip": {"objects": ["Arm", "Flag"], "vertex_group": "tip", "bounds": ((-0.2, -0.2, 0.5), (0.85, 0.2, 1.0)),
-                "role": "handle"},
+    "arm_root": {
+        "objects": ["Arm"],
+        "vertex_group": "root",
+        "bounds": ((-0.2, -0.2, -0.5), (0.2, 0.2, -0.25)),
+        "role": "pin (keeps the arm attached to the base)",
+    },
+    "arm_tip": {
+        "objects": ["Arm", "Flag"],
+        "vertex_group": "tip",
+        "bounds": ((-0.2, -0.2, 0.5), (0.85, 0.2, 1.0)),
+        "role": "handle",
+    },
 }
 SCENE_BOUNDS = ((-0.9, -0.6, -1.0), (0.9, 0.6, 1.0))
 
 # Flat colours (linear RGB); shaded per face by `_shade`.
 BASE_COLOURS = ((0.05, 0.20, 0.65), (0.80, 0.80, 0.75))  # blue / cream chequer on the top
 BASE_SIDE = (0.08, 0.30, 0.55)
-ARM_COLOURS = ((0.85, 0.05, 0.03), (0.95, 0.35, 0.02), (0.95, 0.80, 0.05),
-               (0.10, 0.60, 0.08), (0.03, 0.55, 0.75), (0.45, 0.10, 0.70))  # red, orange, yellow, green, cyan, violet
+ARM_COLOURS = (
+    (0.85, 0.05, 0.03),
+    (0.95, 0.35, 0.02),
+    (0.95, 0.80, 0.05),
+    (0.10, 0.60, 0.08),
+    (0.03, 0.55, 0.75),
+    (0.45, 0.10, 0.70),
+)  # red, orange, yellow, green, cyan, violet
 FLAG_COLOURS = ((0.90, 0.10, 0.45), (0.95, 0.95, 0.92))  # magenta with a white stripe
 KEY_LIGHT = (0.45, -0.65, 0.62)
 
@@ -83,19 +97,24 @@ def closed_box_bmesh(bounds, divisions):
     bm = bmesh.new()
 
     def grid(origin, u_axis, v_axis, nu, nv):
-        verts = [[bm.verts.new(tuple(origin[c] + u_axis[c] * i / nu + v_axis[c] * j / nv for c in range(3)))
-                  for j in range(nv + 1)] for i in range(nu + 1)]
+        verts = [
+            [
+                bm.verts.new(tuple(origin[c] + u_axis[c] * i / nu + v_axis[c] * j / nv for c in range(3)))
+                for j in range(nv + 1)
+            ]
+            for i in range(nu + 1)
+        ]
         for i in range(nu):
             for j in range(nv):
                 bm.faces.new((verts[i][j], verts[i + 1][j], verts[i + 1][j + 1], verts[i][j + 1]))
 
     dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
-    grid((x0, y0, z0), (0, dy, 0), (dx, 0, 0), ny, nx)   # bottom (-Z)
-    grid((x0, y0, z1), (dx, 0, 0), (0, dy, 0), nx, ny)   # top (+Z)
-    grid((x0, y0, z0), (dx, 0, 0), (0, 0, dz), nx, nz)   # front (-Y)
-    grid((x0, y1, z0), (0, 0, dz), (dx, 0, 0), nz, nx)   # back (+Y)
-    grid((x0, y0, z0), (0, 0, dz), (0, dy, 0), nz, ny)   # left (-X)
-    grid((x1, y0, z0), (0, dy, 0), (0, 0, dz), ny, nz)   # right (+X)
+    grid((x0, y0, z0), (0, dy, 0), (dx, 0, 0), ny, nx)  # bottom (-Z)
+    grid((x0, y0, z1), (dx, 0, 0), (0, dy, 0), nx, ny)  # top (+Z)
+    grid((x0, y0, z0), (dx, 0, 0), (0, 0, dz), nx, nz)  # front (-Y)
+    grid((x0, y1, z0), (0, 0, dz), (dx, 0, 0), nz, nx)  # back (+Y)
+    grid((x0, y0, z0), (0, 0, dz), (0, dy, 0), nz, ny)  # left (-X)
+    grid((x1, y0, z0), (0, dy, 0), (0, 0, dz), ny, nz)  # right (+X)
     bmesh.ops.remove_doubles(bm, verts=bm.verts, dist=1e-6)
     bmesh.ops.recalc_face_normals(bm, faces=bm.faces)
     return bm

@@ -149,8 +149,14 @@ class Stage:
 def run(*args, env=None, capture=False) -> str:
     """Run a command with this interpreter; its output streams to the terminal (progress stays visible)."""
     command = [sys.executable, *map(str, args)]
-    proc = subprocess.run(command, cwd=REPO, env=env, text=True,
-                          stdout=subprocess.PIPE if capture else None, stderr=subprocess.STDOUT if capture else None)
+    proc = subprocess.run(
+        command,
+        cwd=REPO,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE if capture else None,
+        stderr=subprocess.STDOUT if capture else None,
+    )
     if proc.returncode != 0:
         tail = (proc.stdout or "")[-3000:]
         raise SystemExit(f"demo: `{' '.join(map(str, args))}` failed (exit {proc.returncode})\n{tail}")
@@ -194,8 +200,12 @@ def save_gif_and_side_by_side(frames: list[Path], gif: Path, side: Path, backgro
     loop = pictures + pictures[-2:0:-1]
     from blender_nerf_deform.engine.files import atomic_write
 
-    atomic_write(gif, lambda f: loop[0].save(f, format="GIF", save_all=True, append_images=loop[1:],
-                                             duration=1000 // 24, loop=0, optimize=True))
+    atomic_write(
+        gif,
+        lambda f: loop[0].save(
+            f, format="GIF", save_all=True, append_images=loop[1:], duration=1000 // 24, loop=0, optimize=True
+        ),
+    )
     first, last = pictures[0], pictures[-1]
     w, h = first.size
     label = max(14, h // 12)
@@ -209,22 +219,34 @@ def save_gif_and_side_by_side(frames: list[Path], gif: Path, side: Path, backgro
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="demo.py", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="demo.py", description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--out", type=Path, default=REPO / "demo_out", help="output folder (default demo_out/)")
     p.add_argument("--train-seconds", type=float, default=300.0, help="NeRF training budget (default 300)")
-    p.add_argument("--train-steps", type=int, default=0,
-                   help="train for this many steps instead of a time budget (the same NeRF on a busy machine)")
+    p.add_argument(
+        "--train-steps",
+        type=int,
+        default=0,
+        help="train for this many steps instead of a time budget (the same NeRF on a busy machine)",
+    )
     p.add_argument("--views", type=int, default=100, help="training views (default 100)")
     p.add_argument("--image-size", type=int, default=200, help="training image size in pixels (default 200)")
     p.add_argument("--extract-resolution", type=int, default=256, help="extraction grid per axis (default 256)")
     p.add_argument("--render-size", type=int, default=320, help="rendered frame size in pixels (default 320)")
     p.add_argument("--frames", type=int, default=24, help="frames of the bend animation (default 24)")
-    p.add_argument("--rig", choices=("handles", "armature"), default="handles",
-                   help="what animates the bend: the handles' own keyframes (default), or a two-bone armature the "
-                        "handles are parented to (bones keyed, ARAP in between)")
-    p.add_argument("--quick", action="store_true",
-                   help="a reduced run for tests: 40 views of 64 px, 400 training steps, 96^3 extraction, 6 frames of 64 px")
+    p.add_argument(
+        "--rig",
+        choices=("handles", "armature"),
+        default="handles",
+        help="what animates the bend: the handles' own keyframes (default), or a two-bone armature the "
+        "handles are parented to (bones keyed, ARAP in between)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="a reduced run for tests: 40 views of 64 px, 400 training steps, 96^3 extraction, 6 frames of 64 px",
+    )
     p.add_argument("--child", choices=("author", "render"), help=argparse.SUPPRESS)
     p.add_argument("config", nargs="?", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -267,26 +289,62 @@ def main(argv=None) -> int:
 
     dataset = out / "dataset"
     with stage("dataset", f"render {args.views} training views of {args.image_size} px with Cycles"):
-        run("tools/make_dataset.py", "--blend", out / "scene.blend", "--out", dataset, "--count", args.views,
-            "--test-count", 8, "--resolution", args.image_size, "--radius", 4.0, "--samples", 16, "--seed", 0)
+        run(
+            "tools/make_dataset.py",
+            "--blend",
+            out / "scene.blend",
+            "--out",
+            dataset,
+            "--count",
+            args.views,
+            "--test-count",
+            8,
+            "--resolution",
+            args.image_size,
+            "--radius",
+            4.0,
+            "--samples",
+            16,
+            "--seed",
+            0,
+        )
 
     run_dir = out / "run"
     budget = ("--steps", args.train_steps) if args.train_steps else ("--max-seconds", args.train_seconds)
-    with stage("train", f"train the NeRF for {args.train_steps} steps" if args.train_steps
-               else f"train the NeRF for {args.train_seconds:g} s"):
-        run("-m", "blender_nerf_deform.engine", "train", "--data", dataset, "--out", run_dir,
-            *budget, "--overwrite")  # a rerun of the demo trains anew
-        psnr = run("-m", "blender_nerf_deform.engine", "eval", "--nerf", run_dir / "nerf.ckpt",
-                   "--data", dataset / "test", capture=True)
+    with stage(
+        "train",
+        f"train the NeRF for {args.train_steps} steps"
+        if args.train_steps
+        else f"train the NeRF for {args.train_seconds:g} s",
+    ):
+        run(
+            "-m", "blender_nerf_deform.engine", "train", "--data", dataset, "--out", run_dir, *budget, "--overwrite"
+        )  # a rerun of the demo trains anew
+        psnr = run(
+            "-m",
+            "blender_nerf_deform.engine",
+            "eval",
+            "--nerf",
+            run_dir / "nerf.ckpt",
+            "--data",
+            dataset / "test",
+            capture=True,
+        )
         print("    held-out views:", psnr.strip().splitlines()[-1], flush=True)
 
     with stage("extension", "build the extension and install it (a Blender user folder private to the demo)"):
         zip_path = install_extension(out, user)
 
     blend = out / "demo.blend"
-    config = {"out": str(out), "blend": str(blend), "checkpoint": str(run_dir / "nerf.ckpt"),
-              "extract_resolution": args.extract_resolution, "render_size": args.render_size,
-              "frames": args.frames, "rig": args.rig}
+    config = {
+        "out": str(out),
+        "blend": str(blend),
+        "checkpoint": str(run_dir / "nerf.ckpt"),
+        "extract_resolution": args.extract_resolution,
+        "render_size": args.render_size,
+        "frames": args.frames,
+        "rig": args.rig,
+    }
     config_path = out / "demo_config.json"
     config_path.write_text(json.dumps(config, indent=1))
     with stage("author", "Load NeRF, Extract Mesh, Build Cage, pin the base, two handles, keyframes -> demo.blend"):
@@ -303,8 +361,7 @@ def main(argv=None) -> int:
         save_gif_and_side_by_side(frames, gif, side)
 
     total = time.monotonic() - started
-    print(f"\nmake demo: done in {total / 60:.1f} min "
-          f"({', '.join(f'{k} {v:.0f} s' for k, v in stage.times.items())})")
+    print(f"\nmake demo: done in {total / 60:.1f} min ({', '.join(f'{k} {v:.0f} s' for k, v in stage.times.items())})")
     print(f"  blend file   {blend}   (open it in Blender with the extension: {zip_path})")
     print(f"  frames       {out / 'frames'}/frame_0001.png .. frame_{args.frames:04d}.png")
     print(f"  GIF          {gif}")
@@ -323,7 +380,9 @@ def _start_blender():
 
     bpy.ops.wm.read_userpref()
     if not hasattr(bpy.types.Object, "nerf_deform"):
-        raise SystemExit(f"demo: the extension {EXTENSION_MODULE} is not enabled in {os.environ.get('BLENDER_USER_RESOURCES')}")
+        raise SystemExit(
+            f"demo: the extension {EXTENSION_MODULE} is not enabled in {os.environ.get('BLENDER_USER_RESOURCES')}"
+        )
     return bpy
 
 
@@ -381,8 +440,11 @@ def author(config: dict) -> int:
         "Middle": in_arm_column & (z > MIDDLE_BAND[0]) & (z < MIDDLE_BAND[1]),
         "Tip": (x > ax0 - m) & (x < ax1 + m) & (y > ay0 - m) & (y < ay1 + m) & (z > TIP_BOTTOM),
     }
-    print(f"    {len(co) // 3} surface vertices; pinned {int(regions['pin'].sum())}, middle handle "
-          f"{int(regions['Middle'].sum())}, tip handle {int(regions['Tip'].sum())}", flush=True)
+    print(
+        f"    {len(co) // 3} surface vertices; pinned {int(regions['pin'].sum())}, middle handle "
+        f"{int(regions['Middle'].sum())}, tip handle {int(regions['Tip'].sum())}",
+        flush=True,
+    )
 
     _select_vertices(bpy, surface, regions["pin"])
     _check(bpy.ops.nerf_deform.pin_selection(), "Pin Selection")
@@ -405,7 +467,10 @@ def author(config: dict) -> int:
     bpy.ops.object.mode_set(mode="OBJECT")
     if config.get("rig") == "armature":
         rig = rig_handles_with_bones(bpy, handles["Middle"], handles["Tip"], frames)
-        print(f"    armature {rig.name}: bones {', '.join(b.name for b in rig.data.bones)} keyed; the handles follow them", flush=True)
+        print(
+            f"    armature {rig.name}: bones {', '.join(b.name for b in rig.data.bones)} keyed; the handles follow them",
+            flush=True,
+        )
 
     # The camera of the default scene, a little further out so the bent arm stays in frame.
     cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
@@ -432,12 +497,19 @@ def author(config: dict) -> int:
     from tools.make_dataset import intrinsics, write_json_atomic
 
     c2w = [list(row) for row in cam.matrix_world]
-    write_json_atomic(Path(config["out"]) / "cameras.json", {
-        **intrinsics(scene, cam),
-        "frames": [{"file_path": f"frames/frame_{f:04d}.png", "transform_matrix": c2w} for f in range(1, frames + 1)],
-    })
-    print(f"    wrote {blend} (engine {render.engine}, frames 1-{frames}, "
-          f"checkpoint {nerf.nerf_deform.checkpoint})", flush=True)
+    write_json_atomic(
+        Path(config["out"]) / "cameras.json",
+        {
+            **intrinsics(scene, cam),
+            "frames": [
+                {"file_path": f"frames/frame_{f:04d}.png", "transform_matrix": c2w} for f in range(1, frames + 1)
+            ],
+        },
+    )
+    print(
+        f"    wrote {blend} (engine {render.engine}, frames 1-{frames}, checkpoint {nerf.nerf_deform.checkpoint})",
+        flush=True,
+    )
     return 0
 
 
@@ -450,7 +522,10 @@ def render(config: dict) -> int:
     @bpy.app.handlers.persistent
     def report(scene_, *_):
         done = scene_.frame_current - scene.frame_start + 1
-        print(f"    frame {scene_.frame_current} ({done}/{count}) -> {bpy.path.abspath(scene_.render.frame_path())}", flush=True)
+        print(
+            f"    frame {scene_.frame_current} ({done}/{count}) -> {bpy.path.abspath(scene_.render.frame_path())}",
+            flush=True,
+        )
 
     bpy.app.handlers.render_write.append(report)
     _check(bpy.ops.render.render(animation=True), "Render Animation")

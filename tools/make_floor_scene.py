@@ -96,19 +96,25 @@ def build_floor(bpy) -> None:
 
 
 def build_statue(bpy) -> None:
-    plinth_mat = checker_material(bpy, "PlinthChecker", (1.0, 1.0), (0.80, 0.08, 0.06), (0.92, 0.90, 0.86), 8.0, vary=0.05)
+    plinth_mat = checker_material(
+        bpy, "PlinthChecker", (1.0, 1.0), (0.80, 0.08, 0.06), (0.92, 0.90, 0.86), 8.0, vary=0.05
+    )
     column_mat = wave_material(bpy, "ColumnStripes", (1.0, 1.0), (0.08, 0.45, 0.12), (0.85, 0.80, 0.15), 5.0, vary=0.05)
     head_mat = noise_material(bpy, "HeadBlotches", (0.95, 0.45, 0.05), (0.45, 0.05, 0.05), 6.0)
 
     h = PLINTH_TOP - FLOOR_TOP
-    bpy.ops.mesh.primitive_cylinder_add(vertices=64, radius=PLINTH_RADIUS, depth=h, location=(0.0, 0.0, FLOOR_TOP + 0.5 * h))
+    bpy.ops.mesh.primitive_cylinder_add(
+        vertices=64, radius=PLINTH_RADIUS, depth=h, location=(0.0, 0.0, FLOOR_TOP + 0.5 * h)
+    )
     plinth = _link(bpy, bpy.context.active_object)
     plinth.name = "Plinth"
     plinth.data.materials.append(plinth_mat)
 
     # From 2 cm inside the plinth to 10 cm inside the head: no gaps.
     lo, hi = PLINTH_TOP - 0.02, COLUMN_TOP + 0.1
-    bpy.ops.mesh.primitive_cylinder_add(vertices=48, radius=COLUMN_RADIUS, depth=hi - lo, location=(0.0, 0.0, 0.5 * (lo + hi)))
+    bpy.ops.mesh.primitive_cylinder_add(
+        vertices=48, radius=COLUMN_RADIUS, depth=hi - lo, location=(0.0, 0.0, 0.5 * (lo + hi))
+    )
     column = _link(bpy, bpy.context.active_object)
     column.name = "Column"
     column.data.materials.append(column_mat)
@@ -171,9 +177,15 @@ def build(bpy) -> dict:
     render.resolution_percentage = 100
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
-    info = {"floor_bounds": FLOOR_BOUNDS, "floor_top": FLOOR_TOP, "tile": TILE, "object_bounds": OBJECT_BOUNDS,
-            "plinth": {"radius": PLINTH_RADIUS, "top": PLINTH_TOP}, "world_box": WORLD_BOX,
-            "note": "statue on a floor slab, all inside world_box; transparent film"}
+    info = {
+        "floor_bounds": FLOOR_BOUNDS,
+        "floor_top": FLOOR_TOP,
+        "tile": TILE,
+        "object_bounds": OBJECT_BOUNDS,
+        "plinth": {"radius": PLINTH_RADIUS, "top": PLINTH_TOP},
+        "world_box": WORLD_BOX,
+        "note": "statue on a floor slab, all inside world_box; transparent film",
+    }
     scene["nerf_floor"] = json.dumps(info)
     return info
 

@@ -164,6 +164,7 @@ def checker_material(bpy, name, size, colour1, colour2, squares, vary=0.2):
 
 def wave_material(bpy, name, size, colour1, colour2, scale, vary=0.2):
     """Wavy vertical stripes between two colours."""
+
     def build(nodes, links):
         vec = _uv(nodes, size)
         wave = nodes.new("ShaderNodeTexWave")
@@ -185,6 +186,7 @@ def wave_material(bpy, name, size, colour1, colour2, scale, vary=0.2):
 
 def noise_material(bpy, name, colour1, colour2, scale):
     """Blotchy plaster / marble between two colours (3D noise in object space: any shape)."""
+
     def build(nodes, links):
         coord = nodes.new("ShaderNodeTexCoord")
         noise = nodes.new("ShaderNodeTexNoise")
@@ -254,13 +256,19 @@ def build_object(bpy) -> None:
     marble = noise_material(bpy, "Marble", (0.75, 0.74, 0.70), (0.45, 0.45, 0.50), 3.0)
 
     floor_z = ROOM_BOUNDS[0][2]
-    bpy.ops.mesh.primitive_cylinder_add(vertices=48, radius=COLUMN_RADIUS, depth=(PLATE_TOP - 0.1) - floor_z,
-                                        location=(0.0, 0.0, 0.5 * (floor_z + PLATE_TOP - 0.1)))
+    bpy.ops.mesh.primitive_cylinder_add(
+        vertices=48,
+        radius=COLUMN_RADIUS,
+        depth=(PLATE_TOP - 0.1) - floor_z,
+        location=(0.0, 0.0, 0.5 * (floor_z + PLATE_TOP - 0.1)),
+    )
     column = _link(bpy, bpy.context.active_object)
     column.name = "Pedestal"
     column.data.materials.append(marble)
     _smooth(column)
-    bpy.ops.mesh.primitive_cylinder_add(vertices=64, radius=PLATE_RADIUS, depth=0.1, location=(0.0, 0.0, PLATE_TOP - 0.05))
+    bpy.ops.mesh.primitive_cylinder_add(
+        vertices=64, radius=PLATE_RADIUS, depth=0.1, location=(0.0, 0.0, PLATE_TOP - 0.05)
+    )
     top = _link(bpy, bpy.context.active_object)
     top.name = "Plate"
     top.data.materials.append(plate)
@@ -283,7 +291,9 @@ def build_object(bpy) -> None:
     cube = _link(bpy, bpy.context.active_object)
     cube.name = "Cube"
     cube.data.materials.append(red)
-    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.16, location=(-0.45, -0.3, PLATE_TOP + 0.16), segments=48, ring_count=24)
+    bpy.ops.mesh.primitive_uv_sphere_add(
+        radius=0.16, location=(-0.45, -0.3, PLATE_TOP + 0.16), segments=48, ring_count=24
+    )
     sphere = _link(bpy, bpy.context.active_object)
     sphere.name = "Sphere"
     sphere.data.materials.append(blue)
@@ -301,20 +311,60 @@ def build_room(bpy) -> None:
     half = math.pi / 2
     # Each wall: its own pattern and colour (UV v runs up the wall). Scale = repeats per wall.
     walls = [
-        ("WallNorth", (0.0, y1, cz), (w, h), (half, 0.0, math.pi),  # +Y: red brick
-         brick_material(bpy, "BrickRed", (w / 1.0, h / 1.0), (0.55, 0.12, 0.07), (0.40, 0.16, 0.08), (0.75, 0.72, 0.65))),
-        ("WallSouth", (0.0, y0, cz), (w, h), (half, 0.0, 0.0),  # -Y: blue / cream checker
-         checker_material(bpy, "CheckerBlue", (w / 1.5, h / 1.5), (0.10, 0.22, 0.55), (0.80, 0.76, 0.62), 2.0)),
-        ("WallEast", (x1, 0.0, cz), (d, h), (half, 0.0, half),  # +X: green wavy stripes
-         wave_material(bpy, "WaveGreen", (d / 3.0, h / 3.0), (0.12, 0.42, 0.20), (0.70, 0.78, 0.45), 4.0)),
-        ("WallWest", (x0, 0.0, cz), (d, h), (half, 0.0, -half),  # -X: yellow / grey stone brick
-         brick_material(bpy, "StoneYellow", (d / 1.5, h / 1.5), (0.70, 0.58, 0.25), (0.45, 0.45, 0.42),
-                        (0.20, 0.18, 0.16), brick_width=0.6, row_height=0.3, vary=0.35)),
+        (
+            "WallNorth",
+            (0.0, y1, cz),
+            (w, h),
+            (half, 0.0, math.pi),  # +Y: red brick
+            brick_material(
+                bpy, "BrickRed", (w / 1.0, h / 1.0), (0.55, 0.12, 0.07), (0.40, 0.16, 0.08), (0.75, 0.72, 0.65)
+            ),
+        ),
+        (
+            "WallSouth",
+            (0.0, y0, cz),
+            (w, h),
+            (half, 0.0, 0.0),  # -Y: blue / cream checker
+            checker_material(bpy, "CheckerBlue", (w / 1.5, h / 1.5), (0.10, 0.22, 0.55), (0.80, 0.76, 0.62), 2.0),
+        ),
+        (
+            "WallEast",
+            (x1, 0.0, cz),
+            (d, h),
+            (half, 0.0, half),  # +X: green wavy stripes
+            wave_material(bpy, "WaveGreen", (d / 3.0, h / 3.0), (0.12, 0.42, 0.20), (0.70, 0.78, 0.45), 4.0),
+        ),
+        (
+            "WallWest",
+            (x0, 0.0, cz),
+            (d, h),
+            (half, 0.0, -half),  # -X: yellow / grey stone brick
+            brick_material(
+                bpy,
+                "StoneYellow",
+                (d / 1.5, h / 1.5),
+                (0.70, 0.58, 0.25),
+                (0.45, 0.45, 0.42),
+                (0.20, 0.18, 0.16),
+                brick_width=0.6,
+                row_height=0.3,
+                vary=0.35,
+            ),
+        ),
     ]
     for name, centre, size, rotation, mat in walls:
         _plane(bpy, name, centre, size, rotation, mat)
-    floor = brick_material(bpy, "FloorTiles", (w / 2.0, d / 2.0), (0.50, 0.35, 0.22), (0.30, 0.20, 0.13),
-                           (0.85, 0.82, 0.75), brick_width=0.5, row_height=0.5, vary=0.3)
+    floor = brick_material(
+        bpy,
+        "FloorTiles",
+        (w / 2.0, d / 2.0),
+        (0.50, 0.35, 0.22),
+        (0.30, 0.20, 0.13),
+        (0.85, 0.82, 0.75),
+        brick_width=0.5,
+        row_height=0.5,
+        vary=0.3,
+    )
     _plane(bpy, "Floor", (0.0, 0.0, z0), (w, d), (0.0, 0.0, 0.0), floor)
     ceiling = noise_material(bpy, "Ceiling", (0.80, 0.78, 0.74), (0.62, 0.62, 0.66), 1.2)
     _plane(bpy, "Ceiling", (0.0, 0.0, z1), (w, d), (math.pi, 0.0, 0.0), ceiling)
@@ -333,19 +383,41 @@ def build_room(bpy) -> None:
     _plane(bpy, "Poster", (x1 - eps, -1.5, 0.8), (1.2, 1.8), (half, 0.0, half), poster)  # on the green wall
     shelf = diffuse_material(bpy, "Shelf", (0.55, 0.40, 0.25))
     _box(bpy, "Shelf", (x0 + eps, -1.2, 0.2), (x0 + 0.45, 1.6, 0.28), shelf)  # on the stone wall
-    for k, (colour, y, size) in enumerate((((0.75, 0.06, 0.04), -0.9, 0.35), ((0.05, 0.35, 0.70), -0.3, 0.5),
-                                           ((0.90, 0.85, 0.80), 0.3, 0.25), ((0.10, 0.50, 0.15), 0.9, 0.4))):
-        _box(bpy, f"ShelfBox{k}", (x0 + 0.08, y, 0.28), (x0 + 0.08 + min(size, 0.35), y + 0.35, 0.28 + size),
-             diffuse_material(bpy, f"ShelfBox{k}", colour))
-    _box(bpy, "Rug", (-2.8, 1.4, z0), (-0.8, 3.2, z0 + 0.02),
-         checker_material(bpy, "Rug", (1.0, 1.0), (0.55, 0.10, 0.10), (0.85, 0.70, 0.30), 6.0, vary=0.05))
+    for k, (colour, y, size) in enumerate(
+        (
+            ((0.75, 0.06, 0.04), -0.9, 0.35),
+            ((0.05, 0.35, 0.70), -0.3, 0.5),
+            ((0.90, 0.85, 0.80), 0.3, 0.25),
+            ((0.10, 0.50, 0.15), 0.9, 0.4),
+        )
+    ):
+        _box(
+            bpy,
+            f"ShelfBox{k}",
+            (x0 + 0.08, y, 0.28),
+            (x0 + 0.08 + min(size, 0.35), y + 0.35, 0.28 + size),
+            diffuse_material(bpy, f"ShelfBox{k}", colour),
+        )
+    _box(
+        bpy,
+        "Rug",
+        (-2.8, 1.4, z0),
+        (-0.8, 3.2, z0 + 0.02),
+        checker_material(bpy, "Rug", (1.0, 1.0), (0.55, 0.10, 0.10), (0.85, 0.70, 0.30), 6.0, vary=0.05),
+    )
 
 
 def build_lights(bpy) -> None:
     (x0, y0, z0), (x1, y1, z1) = ROOM_BOUNDS
     # An emissive panel in the ceiling (seen in upward views) with an area light just below it.
-    _plane(bpy, "CeilingPanel", (0.0, 0.0, z1 - 0.01), (2.0, 2.0), (math.pi, 0.0, 0.0),
-           emission_material(bpy, "PanelLight", (1.0, 0.97, 0.90), 3.0))
+    _plane(
+        bpy,
+        "CeilingPanel",
+        (0.0, 0.0, z1 - 0.01),
+        (2.0, 2.0),
+        (math.pi, 0.0, 0.0),
+        emission_material(bpy, "PanelLight", (1.0, 0.97, 0.90), 3.0),
+    )
     light = bpy.data.lights.new("CeilingLight", "AREA")
     light.shape, light.size = "SQUARE", 2.0
     light.energy = 380.0
@@ -354,8 +426,14 @@ def build_lights(bpy) -> None:
     obj.location = (0.0, 0.0, z1 - 0.05)
     bpy.context.scene.collection.objects.link(obj)
     # A "window" on the stone wall: a bright bluish emitter, lights the room from the side.
-    _plane(bpy, "Window", (x0 + 0.01, 2.8, 1.6), (1.6, 1.4), (math.pi / 2, 0.0, -math.pi / 2),
-           emission_material(bpy, "WindowLight", (0.75, 0.85, 1.0), 2.0))
+    _plane(
+        bpy,
+        "Window",
+        (x0 + 0.01, 2.8, 1.6),
+        (1.6, 1.4),
+        (math.pi / 2, 0.0, -math.pi / 2),
+        emission_material(bpy, "WindowLight", (0.75, 0.85, 1.0), 2.0),
+    )
     window = bpy.data.lights.new("WindowLight", "AREA")
     window.shape, window.size, window.size_y = "RECTANGLE", 1.6, 1.4
     window.energy = 110.0
@@ -401,9 +479,13 @@ def build(bpy) -> dict:
     render.resolution_percentage = 100
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
-    info = {"object_bounds": OBJECT_BOUNDS, "room_bounds": ROOM_BOUNDS, "world_box": WORLD_BOX,
-            "pedestal": {"radius": COLUMN_RADIUS, "z": (ROOM_BOUNDS[0][2], PLATE_TOP - 0.1)},
-            "note": "object inside world_box; walls, floor and ceiling outside it; render with --opaque"}
+    info = {
+        "object_bounds": OBJECT_BOUNDS,
+        "room_bounds": ROOM_BOUNDS,
+        "world_box": WORLD_BOX,
+        "pedestal": {"radius": COLUMN_RADIUS, "z": (ROOM_BOUNDS[0][2], PLATE_TOP - 0.1)},
+        "note": "object inside world_box; walls, floor and ceiling outside it; render with --opaque",
+    }
     scene["nerf_room"] = json.dumps(info)
     return info
 

@@ -44,8 +44,17 @@ MODULE = f"bl_ext.user_default.{EXT_ID}"
 DONE = "SMOKE-STEP-DONE"
 # What glibc, Blender's guarded allocator and Python print when memory or code went wrong
 # (addon_tests/fixtures/processes.py CRASH_SIGNS, plus Blender's note of memory freed after exit).
-CRASH_SIGNS = ("corrupted", "free():", "double free", "munmap_chunk", "malloc():", "Not freed memory blocks",
-               "Segmentation fault", "Traceback (most recent call last)", "Freeing memory after the leak detector")
+CRASH_SIGNS = (
+    "corrupted",
+    "free():",
+    "double free",
+    "munmap_chunk",
+    "malloc():",
+    "Not freed memory blocks",
+    "Segmentation fault",
+    "Traceback (most recent call last)",
+    "Freeing memory after the leak detector",
+)
 RENDER_SIZE = 32
 EXTRACT_RESOLUTION = 32
 THRESHOLD = 10.0  # the add-on's default density threshold
@@ -86,7 +95,9 @@ def write_sphere_dataset(folder: Path, views: int = 16, size: int = 32) -> Path:
         pre = np.concatenate([rgb * a[..., None], a[..., None]], -1).reshape(size, ss, size, ss, 4).mean((1, 3))
         alpha = pre[..., 3:]
         rgba = np.concatenate([np.where(alpha > 0, pre[..., :3] / np.maximum(alpha, 1e-9), 0), alpha], -1)
-        Image.fromarray((np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8), "RGBA").save(folder / "images" / f"r_{k}.png")
+        Image.fromarray((np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8), "RGBA").save(
+            folder / "images" / f"r_{k}.png"
+        )
         frames.append({"file_path": f"images/r_{k}", "transform_matrix": c2w.tolist()})
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
     return folder
@@ -95,9 +106,27 @@ def write_sphere_dataset(folder: Path, views: int = 16, size: int = 32) -> Path:
 def train_nerf(root: Path, worker_python: str, steps: int, env: dict) -> Path:
     data = write_sphere_dataset(root / "data")
     run = root / "run"
-    proc = subprocess.run([worker_python, "-m", "blender_nerf_deform.engine", "train", "--data", str(data),
-                           "--out", str(run), "--steps", str(steps), "--device", "cpu"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [
+            worker_python,
+            "-m",
+            "blender_nerf_deform.engine",
+            "train",
+            "--data",
+            str(data),
+            "--out",
+            str(run),
+            "--steps",
+            str(steps),
+            "--device",
+            "cpu",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     if proc.returncode != 0 or not (run / "nerf.ckpt").is_file():
         raise SystemExit(f"smoke: training the tiny NeRF failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
     return run / "nerf.ckpt"
@@ -127,12 +156,21 @@ def _kill_session(sid: int) -> None:
             pass
 
 
-def run_step(python: str, args: list[str], log: Path, env: dict, timeout: float, exit_grace: float) -> tuple[bool, str, float]:
+def run_step(
+    python: str, args: list[str], log: Path, env: dict, timeout: float, exit_grace: float
+) -> tuple[bool, str, float]:
     """Run `python args...` in a new session, output into `log`; (passed, why not, seconds)."""
     started = time.monotonic()
     with log.open("w") as out:
-        proc = subprocess.Popen([python, *args], cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
+        proc = subprocess.Popen(
+            [python, *args],
+            cwd=REPO,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
     done_at, problem = None, ""
     while proc.poll() is None:
         time.sleep(0.2)
@@ -140,7 +178,9 @@ def run_step(python: str, args: list[str], log: Path, env: dict, timeout: float,
         if done_at is None and DONE in log.read_text(errors="replace"):
             done_at = now
         if done_at is not None and now - done_at > exit_grace:
-            problem = f"finished its script but did not exit within {exit_grace:.0f} s (a hang in Blender's teardown): killed"
+            problem = (
+                f"finished its script but did not exit within {exit_grace:.0f} s (a hang in Blender's teardown): killed"
+            )
         elif now - started > timeout:
             problem = f"no exit within {timeout:.0f} s: killed (hung?)"
         if problem:
@@ -184,19 +224,28 @@ def compare_frames(a: Path, b: Path) -> str:
     return "" if 0 <= diff <= 3 else f"the reopened file's frame differs from the first (max difference {diff}/255)"
 
 
-def smoke_release(label: str, python: str, zip_path: Path, nerf: Path, root: Path, base_env: dict, args) -> tuple[bool, str]:
+def smoke_release(
+    label: str, python: str, zip_path: Path, nerf: Path, root: Path, base_env: dict, args
+) -> tuple[bool, str]:
     work = root / label
     project = work / "project"
     (project / "run").mkdir(parents=True)
     shutil.copy2(nerf, project / "run" / "nerf.ckpt")
-    config = {"zip": str(zip_path), "blend": str(project / "shot.blend"), "checkpoint": str(project / "run" / "nerf.ckpt"),
-              "frame_a": str(project / "frame_a.png"), "frame_b": str(project / "frame_b.png")}
+    config = {
+        "zip": str(zip_path),
+        "blend": str(project / "shot.blend"),
+        "checkpoint": str(project / "run" / "nerf.ckpt"),
+        "frame_a": str(project / "frame_a.png"),
+        "frame_b": str(project / "frame_b.png"),
+    }
     (work / "config.json").write_text(json.dumps(config))
     env = {**base_env, "BLENDER_USER_RESOURCES": str(work / "user")}
     times = []
-    steps = [("validate", ["-c", VALIDATE, str(zip_path)]),
-             ("author", [__file__, "--child", "author", str(work / "config.json")]),
-             ("reopen", [__file__, "--child", "reopen", str(work / "config.json")])]
+    steps = [
+        ("validate", ["-c", VALIDATE, str(zip_path)]),
+        ("author", [__file__, "--child", "author", str(work / "config.json")]),
+        ("reopen", [__file__, "--child", "reopen", str(work / "config.json")]),
+    ]
     for name, step_args in steps:
         log = work / f"{name}.log"
         ok, problem, seconds = run_step(python, step_args, log, env, args.timeout, args.exit_grace)
@@ -277,8 +326,12 @@ def _ui_checker(bpy):
                         problems.append(f"operator {idname!r} does not exist")
                         rna_type = None
                     return OperatorProps(idname, rna_type)
-                return Layout() if functions[name].parameters.get("layout") is not None or name in (
-                    "row", "column", "box", "split", "grid_flow", "column_flow") else None
+                return (
+                    Layout()
+                    if functions[name].parameters.get("layout") is not None
+                    or name in ("row", "column", "box", "split", "grid_flow", "column_flow")
+                    else None
+                )
 
             return call
 
@@ -341,15 +394,17 @@ def _render(bpy, path: str):
 
 
 def child_author(config: dict) -> None:
-    import bpy
     import bmesh  # (after bpy, which makes it importable)
+    import bpy
     import numpy as np
     from mathutils import Vector
 
     print(f"Blender {bpy.app.version_string}", flush=True)
     Path(config["blend"]).parent.parent.joinpath("version.txt").write_text(bpy.app.version_string)
-    _check(bpy.ops.extensions.package_install_files(filepath=config["zip"], repo="user_default", enable_on_install=True),
-           "install the zip")
+    _check(
+        bpy.ops.extensions.package_install_files(filepath=config["zip"], repo="user_default", enable_on_install=True),
+        "install the zip",
+    )
     assert MODULE in bpy.context.preferences.addons.keys(), f"{MODULE} is not enabled after install"
     assert sys.modules[MODULE].__package__ == MODULE
     _check(bpy.ops.wm.save_userpref(), "save the preferences")
@@ -432,16 +487,34 @@ def child_reopen(config: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--release", action="append", default=[], metavar="LABEL=PYTHON",
-                        help="a release to smoke: its label and a Python that has its bpy wheel (repeat)")
-    parser.add_argument("--worker-python", default=sys.executable, help="the worker's Python, with torch (default: this one)")
+    parser.add_argument(
+        "--release",
+        action="append",
+        default=[],
+        metavar="LABEL=PYTHON",
+        help="a release to smoke: its label and a Python that has its bpy wheel (repeat)",
+    )
+    parser.add_argument(
+        "--worker-python", default=sys.executable, help="the worker's Python, with torch (default: this one)"
+    )
     parser.add_argument("--zip", type=Path, help="the extension zip (default: built now with tools/build_extension.py)")
     parser.add_argument("--nerf", type=Path, help="a NeRF checkpoint (default: a tiny one trained now)")
-    parser.add_argument("--steps", type=int, default=200, help="training steps of the tiny NeRF (default 200: its density peaks near 60, the threshold is 10)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=200,
+        help="training steps of the tiny NeRF (default 200: its density peaks near 60, the threshold is 10)",
+    )
     parser.add_argument("--timeout", type=float, default=300, help="seconds one step's process may run (default 300)")
-    parser.add_argument("--exit-grace", type=float, default=60,
-                        help="seconds a process may take to exit once its script finished (default 60)")
-    parser.add_argument("--work-dir", type=Path, help="keep everything here (default: a temporary folder, removed on success)")
+    parser.add_argument(
+        "--exit-grace",
+        type=float,
+        default=60,
+        help="seconds a process may take to exit once its script finished (default 60)",
+    )
+    parser.add_argument(
+        "--work-dir", type=Path, help="keep everything here (default: a temporary folder, removed on success)"
+    )
     parser.add_argument("--child", nargs=2, metavar=("STEP", "CONFIG"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
@@ -463,7 +536,9 @@ def main(argv: list[str] | None = None) -> int:
     root = args.work_dir or Path(tempfile.mkdtemp(prefix="nerf_deform_smoke_"))
     root.mkdir(parents=True, exist_ok=True)
     worker = str(Path(args.worker_python).absolute())
-    env = {k: v for k, v in os.environ.items() if not k.startswith("BLENDER_") and k not in ("PYTHONPATH", "PYTHONHOME")}
+    env = {
+        k: v for k, v in os.environ.items() if not k.startswith("BLENDER_") and k not in ("PYTHONPATH", "PYTHONHOME")
+    }
     env["NERF_DEFORM_PYTHON"] = worker
     # One numba kernel cache for the run: the workers of every release (the same worker Python, each with
     # its own installed copy of the engine) load the kernels the first one compiled (engine/kernel_cache.py).

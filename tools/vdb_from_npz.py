@@ -27,7 +27,7 @@ if str(REPO) not in sys.path:
 
 def main(argv=None) -> int:
     if argv is None:
-        argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+        argv = sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
     p = argparse.ArgumentParser(prog="vdb_from_npz.py", description=__doc__.split("\n\n")[0])
     p.add_argument("source", type=Path, help="a baked .npz, or a folder of them")
     p.add_argument("out", type=Path, help="folder for the .vdb files")
@@ -43,8 +43,12 @@ def convert(source: Path, out: Path, scale: float) -> None:
     import numpy as np
 
     from blender_nerf_deform.addon.data.images import srgb_to_linear
-    from blender_nerf_deform.addon.export.volume_file import (VolumeFileError, check_vdb_replaceable, scaled_density,
-                                                               write_vdb)
+    from blender_nerf_deform.addon.export.volume_file import (
+        VolumeFileError,
+        check_vdb_replaceable,
+        scaled_density,
+        write_vdb,
+    )
     from blender_nerf_deform.engine.bend.baked_volume import load_baked
     from blender_nerf_deform.engine.errors import EngineError
     from blender_nerf_deform.engine.files import StagedFiles, check_writable
@@ -68,9 +72,15 @@ def convert(source: Path, out: Path, scale: float) -> None:
             if not out.is_dir():
                 staged.make_folder(out)
             for f, b, target in zip(files, baked, targets):
-                write_vdb(staged.temporary(target), b.grid.shape, b.grid.index_to_nerf, b.index,
-                          scaled_density(b.density, scale, f"{f}: --scale {scale:g}"),
-                          srgb_to_linear(np.clip(b.color, 0.0, 1.0)), where=str(f))
+                write_vdb(
+                    staged.temporary(target),
+                    b.grid.shape,
+                    b.grid.index_to_nerf,
+                    b.index,
+                    scaled_density(b.density, scale, f"{f}: --scale {scale:g}"),
+                    srgb_to_linear(np.clip(b.color, 0.0, 1.0)),
+                    where=str(f),
+                )
                 print(f"{f} -> {target}: {len(b.index)} voxels")
             staged.commit()
     except VolumeFileError as exc:

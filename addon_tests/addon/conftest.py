@@ -10,7 +10,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
 from fixtures.scenes import default_scene_blend, make_procedural_dataset, procedural_dataset  # noqa: F401
 
 
@@ -57,6 +56,7 @@ def addon(blender, module_worker):
 def extension_zip(tmp_path_factory) -> Path:
     """The extension zip built by tools/build_extension.py (validated by Blender's tool)."""
     from fixtures.shared_build import built_once
+
     from tools.build_extension import build
 
     (zip_path,) = built_once(tmp_path_factory, "dist", build).glob("*.zip")

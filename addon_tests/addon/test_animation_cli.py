@@ -16,12 +16,10 @@ import sys
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures import REPO
-from fixtures.blender_objects import nerf_with_built_cage
 from fixtures import psnr as _psnr
-from fixtures.blender_objects import select_in_edit_mode
+from fixtures.blender_objects import nerf_with_built_cage, select_in_edit_mode
+from PIL import Image
 
 SIZE = 48
 FRAMES = (1, 2, 3)
@@ -43,11 +41,10 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
     bpy = addon
     from mathutils import Matrix
 
+    from blender_nerf_deform.addon.data.cage_store import load_cage, load_embedding
     from blender_nerf_deform.addon.data.camera import pinhole_from_blender
-    from blender_nerf_deform.addon.data.cage_store import load_embedding
-    from blender_nerf_deform.addon.worker import jobs
-    from blender_nerf_deform.addon.data.cage_store import load_cage
     from blender_nerf_deform.addon.deform.poses import deformed_cage
+    from blender_nerf_deform.addon.worker import jobs
     from blender_nerf_deform.engine.geometry.mesh_io import save_cage
 
     ckpt, data = sphere_nerf
@@ -106,9 +103,9 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
         assert bpy.ops.render.render(animation=True) == {"FINISHED"}
         renders = [i for i, (what, _) in enumerate(events) if what == "render"]
         assert [events[i][1] for i in renders] == list(FRAMES)
-        assert all(what == "render" for what, _ in events[renders[0]:renders[-1] + 1]), events
+        assert all(what == "render" for what, _ in events[renders[0] : renders[-1] + 1]), events
         # Only once the render is over does the preview catch up again (the restored frame 2).
-        assert ("preview solve", 2) in events[renders[-1]:], events
+        assert ("preview solve", 2) in events[renders[-1] :], events
     finally:
         bpy.app.handlers.render_pre.remove(rendering)
         deformation.AsyncSolver.request = original_request
@@ -133,19 +130,40 @@ def test_keyframed_arap_animation_matches_the_engine_cli_frame_by_frame(addon, s
         pinhole = pinhole_from_blender(scene, camera.evaluated_get(depsgraph))
         to_nerf = np.linalg.inv(np.array(nerf.evaluated_get(depsgraph).matrix_world, dtype=np.float64))
         c2w = to_nerf @ np.array(pinhole.camera_to_world, dtype=np.float64)
-        cameras = {"w": pinhole.width, "h": pinhole.height, "fl_x": pinhole.fx, "fl_y": pinhole.fy,
-                   "cx": pinhole.cx, "cy": pinhole.cy,
-                   "frames": [{"file_path": f"frame_{frame:04d}", "transform_matrix": c2w.tolist()}]}
+        cameras = {
+            "w": pinhole.width,
+            "h": pinhole.height,
+            "fl_x": pinhole.fx,
+            "fl_y": pinhole.fy,
+            "cx": pinhole.cx,
+            "cy": pinhole.cy,
+            "frames": [{"file_path": f"frame_{frame:04d}", "transform_matrix": c2w.tolist()}],
+        }
         pose_dir = tmp_path / f"pose_{frame}"
         pose_dir.mkdir()
         (pose_dir / "transforms.json").write_text(json.dumps(cameras))
         save_cage(pose_dir / "cage.npz", rest, tets)
         np.save(pose_dir / "deformed.npy", deformed)
         proc = subprocess.run(
-            [sys.executable, "-m", "blender_nerf_deform.engine", "render", "--nerf", str(ckpt),
-             "--cameras", str(pose_dir / "transforms.json"), "--out", str(tmp_path / "cli"),
-             "--cage", str(pose_dir / "cage.npz"), "--deformed", str(pose_dir / "deformed.npy")],
-            cwd=REPO, capture_output=True, text=True,
+            [
+                sys.executable,
+                "-m",
+                "blender_nerf_deform.engine",
+                "render",
+                "--nerf",
+                str(ckpt),
+                "--cameras",
+                str(pose_dir / "transforms.json"),
+                "--out",
+                str(tmp_path / "cli"),
+                "--cage",
+                str(pose_dir / "cage.npz"),
+                "--deformed",
+                str(pose_dir / "deformed.npy"),
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
         )
         assert proc.returncode == 0, proc.stderr[-3000:]
 

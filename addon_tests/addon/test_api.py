@@ -8,9 +8,9 @@ import pytest
 def test_a_script_edits_the_lower_half_of_the_sphere(addon, sphere_nerf):
     bpy = addon
     from blender_nerf_deform.addon import api
+    from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage
     from blender_nerf_deform.addon.deform import poses as deformation
     from blender_nerf_deform.addon.worker import jobs
-    from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage
 
     ckpt, _ = sphere_nerf
     nerf = api.load(ckpt)

@@ -4,7 +4,6 @@ import time
 
 import numpy as np
 import pytest
-
 from fixtures.blender_objects import nerf_with_built_cage, select_in_edit_mode
 
 

@@ -17,9 +17,8 @@ import time
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures import psnr as _psnr
+from PIL import Image
 
 
 def _camera(bpy, location, target=(0.0, 0.0, 0.0), size=32, angle_x=1.2):
@@ -48,9 +47,16 @@ def _render(bpy, path):
 def _scene_state(bpy):
     """What a failed operation must not change: objects, their roles, links and NeRF paths."""
     return sorted(
-        (o.name, o.type, o.nerf_deform.role, o.parent.name if o.parent else "", o.nerf_deform.checkpoint,
-         o.nerf_deform.surface.name if o.nerf_deform.surface else "", o.nerf_deform.cage.name if o.nerf_deform.cage else "",
-         len(o.data.vertices) if o.type == "MESH" else -1)
+        (
+            o.name,
+            o.type,
+            o.nerf_deform.role,
+            o.parent.name if o.parent else "",
+            o.nerf_deform.checkpoint,
+            o.nerf_deform.surface.name if o.nerf_deform.surface else "",
+            o.nerf_deform.cage.name if o.nerf_deform.cage else "",
+            len(o.data.vertices) if o.type == "MESH" else -1,
+        )
         for o in bpy.data.objects
     )
 

@@ -7,7 +7,6 @@ import os
 
 import numpy as np
 import pytest
-
 from fixtures.blender_objects import render_exr_passes, scene_with_nerf
 
 pytestmark = pytest.mark.slow
@@ -88,7 +87,9 @@ def test_baked_volume_renders_in_cycles_as_the_nerf_deform_engine_renders_it(add
     # A farm's split: frame 2 baked alone, by itself, is the same file.
     scene.frame_set(2)
     api.bake_volume(nerf, str(tmp_path / "alone"), resolution=96)
-    assert (tmp_path / "alone" / f"{stem}_0002.vdb").read_bytes() == (tmp_path / "vdb" / f"{stem}_0002.vdb").read_bytes()
+    assert (tmp_path / "alone" / f"{stem}_0002.vdb").read_bytes() == (
+        tmp_path / "vdb" / f"{stem}_0002.vdb"
+    ).read_bytes()
 
     # Cage Modifiers (a Simple Deform bend on the cage) and a NeRF object scaled by 1.5, the camera moved
     # with it: the posed cage's box, density per world unit, the same picture as F12.
@@ -130,8 +131,9 @@ def test_meshes_and_the_volume_occlude_each_other_and_the_lit_volume_casts_a_sha
     # sphere's surface, its outer half in front of it or of nothing. Glowing: no light needed.
     view = np.array(scene.camera.matrix_world)
     toward, right = view[:3, 2], view[:3, 0]
-    bpy.ops.mesh.primitive_cube_add(size=0.8, location=tuple(0.1 * toward + 0.6 * right),
-                                    rotation=scene.camera.rotation_euler)
+    bpy.ops.mesh.primitive_cube_add(
+        size=0.8, location=tuple(0.1 * toward + 0.6 * right), rotation=scene.camera.rotation_euler
+    )
     cube = bpy.context.active_object
     glow = bpy.data.materials.new("glow")
     emission = glow.node_tree.nodes.new("ShaderNodeEmission")
@@ -180,7 +182,7 @@ def test_meshes_and_the_volume_occlude_each_other_and_the_lit_volume_casts_a_sha
         u, v, _ = world_to_camera_view(scene, camera, Vector((x, 0.0, -0.9)))
         h, w = image.shape[:2]
         row, col = int(round((1 - v) * h)), int(round(u * w))
-        return float(image[row - 1: row + 2, col - 1: col + 2, :3].mean())
+        return float(image[row - 1 : row + 2, col - 1 : col + 2, :3].mean())
 
     shadowed, open_floor = -1.4, 1.4  # the sun's ray from (-1.4, 0, -0.9) passes 0.65 from the centre
     assert patch(floor, shadowed) == pytest.approx(patch(floor, open_floor), rel=0.1) and patch(floor, shadowed) > 0.1
@@ -231,18 +233,24 @@ def test_the_command_lines_npz_become_vdb_files_blender_reads(addon, sphere_nerf
     import subprocess
     import sys
 
-    from blender_nerf_deform.addon.export.volume_file import openvdb_module
     from fixtures import REPO
+
+    from blender_nerf_deform.addon.export.volume_file import openvdb_module
 
     bpy = addon
     ckpt, _data = sphere_nerf
     engine = [sys.executable, "-m", "blender_nerf_deform.engine"]
-    proc = subprocess.run([*engine, "bake-volume", "--nerf", str(ckpt), "--out", str(tmp_path / "npz"), "--resolution", "24"],
-                          cwd=REPO, capture_output=True, text=True)
+    proc = subprocess.run(
+        [*engine, "bake-volume", "--nerf", str(ckpt), "--out", str(tmp_path / "npz"), "--resolution", "24"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     tool = [sys.executable, str(REPO / "tools" / "vdb_from_npz.py")]
-    proc = subprocess.run([*tool, str(tmp_path / "npz"), str(tmp_path / "vdb"), "--scale", "2"], cwd=REPO,
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [*tool, str(tmp_path / "npz"), str(tmp_path / "vdb"), "--scale", "2"], cwd=REPO, capture_output=True, text=True
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     grids = {g.name: g for g in openvdb_module().readAll(str(tmp_path / "vdb" / "rest.vdb"))[0]}
     assert sorted(grids) == ["color", "density"] and grids["density"].activeVoxelCount() > 50
@@ -256,6 +264,8 @@ def test_the_command_lines_npz_become_vdb_files_blender_reads(addon, sphere_nerf
     assert volume.grids.load() and sorted(g.name for g in volume.grids) == ["color", "density"]
 
     (tmp_path / "bad.npz").write_bytes(b"PK not a zip")
-    proc = subprocess.run([*tool, str(tmp_path / "bad.npz"), str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True)
+    proc = subprocess.run(
+        [*tool, str(tmp_path / "bad.npz"), str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True
+    )
     assert proc.returncode == 2 and "is not a baked volume" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()

@@ -16,8 +16,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fixtures import REPO
-
 # Every process starts like `blender -b`: user preferences read, extensions enabled.
 _PRELUDE = """
 import bpy, sys
@@ -29,8 +27,14 @@ assert hasattr(bpy.types.Object, "nerf_deform"), "NeRF Deform is not enabled"
 def _blender(script: str, user_resources, cwd) -> str:
     env = {**os.environ, "BLENDER_USER_RESOURCES": str(user_resources)}
     env.pop("NUMBA_CACHE_DIR", None)  # a farm node's environment: the worker picks its own kernel cache
-    proc = subprocess.run([sys.executable, "-c", _PRELUDE + textwrap.dedent(script)], env=env, cwd=cwd,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", _PRELUDE + textwrap.dedent(script)],
+        env=env,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     return proc.stdout
 
@@ -48,8 +52,13 @@ def farm(tmp_path_factory, extension_zip, sphere_nerf):
     bpy.ops.wm.save_userpref()
     """
     env = {**os.environ, "BLENDER_USER_RESOURCES": str(user)}
-    proc = subprocess.run([sys.executable, "-c", "import bpy\n" + textwrap.dedent(install)], env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", "import bpy\n" + textwrap.dedent(install)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     ckpt, _ = sphere_nerf
@@ -121,15 +130,20 @@ def test_split_frame_ranges_write_the_same_files_as_one_process(farm):
     for name, frame in zip(whole, frames):
         diff = np.abs(frame.astype(int) - _pixels(project / "split" / name).astype(int))
         if diff.any():
-            differing.append(f"{name}: {int((diff.max(-1) > 0).sum())} of {diff.shape[0] * diff.shape[1]} pixels "
-                             f"differ, by up to {int(diff.max())}/255")
+            differing.append(
+                f"{name}: {int((diff.max(-1) > 0).sum())} of {diff.shape[0] * diff.shape[1]} pixels "
+                f"differ, by up to {int(diff.max())}/255"
+            )
     assert not differing, "; ".join(differing)
     # The workers wrote their compiled files (numba kernels, bytecode of the engine's torch
     # modules, which Blender itself never imports) under the user folder, not into the extension.
     user, _ = farm
     (extension,) = user.glob("extensions/*/blender_nerf_deform")
-    assert not [p for p in extension.rglob("*") if p.suffix in (".nbi", ".nbc") or p.name.startswith("renderer.")
-                and p.suffix == ".pyc"]
+    assert not [
+        p
+        for p in extension.rglob("*")
+        if p.suffix in (".nbi", ".nbc") or p.name.startswith("renderer.") and p.suffix == ".pyc"
+    ]
     assert list(user.glob("extensions/.user/*/blender_nerf_deform/worker/numba_cache/**/*.nbi"))
     # The camera moves: the frames are not all the same picture.
     assert not np.array_equal(frames[0], frames[5])

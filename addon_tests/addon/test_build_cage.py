@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from fixtures.blender_objects import nerf_with_sphere_surface
 
 
@@ -15,7 +14,13 @@ def test_build_cage_stores_a_cage_that_embeds_the_surface(addon):
     nerf, surface = nerf_with_sphere_surface(bpy)
     assert bpy.ops.nerf_deform.build_cage() == {"FINISHED"}
     cage = nerf.nerf_deform.cage
-    assert cage is not None and cage.parent == nerf and cage.nerf_deform.role == "CAGE" and not cage.visible_camera and not cage.visible_shadow
+    assert (
+        cage is not None
+        and cage.parent == nerf
+        and cage.nerf_deform.role == "CAGE"
+        and not cage.visible_camera
+        and not cage.visible_shadow
+    )
     rest, tets = load_cage(cage.data)
     assert len(tets) > 10 and (signed_volumes(rest, tets) > 0).all()
     tet_ids, weights = load_embedding(surface.data)
@@ -74,7 +79,7 @@ def test_build_cage_before_extract_mesh_says_what_to_do(addon):
 
 
 def test_building_a_cage_writes_nothing_into_the_working_directory(tmp_path, monkeypatch):
-    from blender_nerf_deform.engine.geometry.cage import box_cage, boundary_faces, build_cage
+    from blender_nerf_deform.engine.geometry.cage import boundary_faces, box_cage, build_cage
 
     v, t = box_cage((2, 2, 2))
     monkeypatch.chdir(tmp_path)
@@ -155,5 +160,7 @@ def test_building_the_cage_again_then_saving_reopening_and_rendering_in_fresh_pr
     out = assert_clean(run_blender(SCENE_HELPERS + _BUILD_TWICE.format(ckpt=str(ckpt), blend=str(blend)), cwd=tmp_path))
     assert "CAGE VERTICES" in out
     assert "refined where" in out  # Build Cage refined the cage between the two handles (issue 30)
-    out = assert_clean(run_blender(SCENE_HELPERS + _REOPEN_AND_RENDER.format(blend=str(blend), png=str(png)), cwd=tmp_path))
+    out = assert_clean(
+        run_blender(SCENE_HELPERS + _REOPEN_AND_RENDER.format(blend=str(blend), png=str(png)), cwd=tmp_path)
+    )
     assert float(out.split("ALPHA")[-1].split()[0]) > 0.5

@@ -5,7 +5,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from fixtures import REPO
 
 CUBE = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=np.float64)
@@ -112,7 +111,13 @@ def test_loaded_cage_and_embedding_are_copies_not_views_of_the_id_properties(ble
     """A numpy view of an ID property reads freed memory once Blender frees it (undo, Build Cage
     again, quitting; Blender then also reports 'Not freed memory blocks' at exit). Loads copy."""
     bpy = blender
-    from blender_nerf_deform.addon.data.cage_store import EMBED_WEIGHTS_KEY, REST_KEY, load_cage, load_embedding, store_embedding
+    from blender_nerf_deform.addon.data.cage_store import (
+        EMBED_WEIGHTS_KEY,
+        REST_KEY,
+        load_cage,
+        load_embedding,
+        store_embedding,
+    )
 
     obj, vertices = _make_cage(bpy, np.random.default_rng(1))
     rest, _tets = load_cage(obj.data)

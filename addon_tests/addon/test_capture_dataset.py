@@ -69,12 +69,21 @@ def _check_cameras(folder: Path, selected: np.ndarray, decoy: np.ndarray) -> int
         assert alpha.shape == (meta["h"], meta["w"])
         intr = (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"])
         uv = project(selected, frame["transform_matrix"], *intr)
-        assert (uv >= 1).all() and (uv[:, 0] <= meta["w"] - 1).all() and (uv[:, 1] <= meta["h"] - 1).all(), \
+        assert (uv >= 1).all() and (uv[:, 0] <= meta["w"] - 1).all() and (uv[:, 1] <= meta["h"] - 1).all(), (
             f"{frame['file_path']}: the selection is not inside the picture"
+        )
         i, j = np.floor(uv).astype(int).T
-        near = np.max([alpha[np.clip(j + dj, 0, meta["h"] - 1), np.clip(i + di, 0, meta["w"] - 1)]
-                       for di in (-1, 0, 1) for dj in (-1, 0, 1)], axis=0)
-        assert (near > 0.5).all(), f"{frame['file_path']}: {(near <= 0.5).sum()} vertices project onto transparent pixels"
+        near = np.max(
+            [
+                alpha[np.clip(j + dj, 0, meta["h"] - 1), np.clip(i + di, 0, meta["w"] - 1)]
+                for di in (-1, 0, 1)
+                for dj in (-1, 0, 1)
+            ],
+            axis=0,
+        )
+        assert (near > 0.5).all(), (
+            f"{frame['file_path']}: {(near <= 0.5).sum()} vertices project onto transparent pixels"
+        )
         rows, cols = np.nonzero(alpha > 0.5)
         opaque = np.array([[cols.min(), rows.min()], [cols.max() + 1, rows.max() + 1]], dtype=np.float64)
         drawn = np.array([uv.min(0), uv.max(0)])
@@ -134,8 +143,9 @@ def test_cameras_reproduce_blenders_and_fit_the_selection(scene, tmp_path, capfd
 def test_radius_hemisphere_and_cycles_option(scene, tmp_path):
     bpy, *_ = scene
     out = tmp_path / "data"
-    assert bpy.ops.nerf_deform.capture_dataset(output=str(out), count=4, resolution=(24, 24), radius=6.0,
-                                               hemisphere=True, engine="CYCLES", samples=2) == {"FINISHED"}
+    assert bpy.ops.nerf_deform.capture_dataset(
+        output=str(out), count=4, resolution=(24, 24), radius=6.0, hemisphere=True, engine="CYCLES", samples=2
+    ) == {"FINISHED"}
     meta = json.loads((out / "transforms.json").read_text())
     gen = meta["generator"]
     assert (gen["engine"], gen["engine_option"], gen["samples"], gen["device"]) == ("CYCLES", "CYCLES", 2, "CPU")
@@ -154,8 +164,9 @@ def test_opaque_capture_keeps_the_background(scene, tmp_path):
     world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.5, 0.5, 0.5, 1.0)
     bpy.context.scene.world = world
     out = tmp_path / "data"
-    assert bpy.ops.nerf_deform.capture_dataset(output=str(out), count=2, resolution=(16, 16), transparent=False) \
-        == {"FINISHED"}
+    assert bpy.ops.nerf_deform.capture_dataset(output=str(out), count=2, resolution=(16, 16), transparent=False) == {
+        "FINISHED"
+    }
     meta = json.loads((out / "transforms.json").read_text())
     image = Image.open(out / meta["frames"][0]["file_path"])
     assert image.mode == "RGB" and np.asarray(image)[0, 0].min() > 100  # the grey world, opaque
@@ -351,8 +362,11 @@ def test_read_only_output_folder_is_refused_with_a_clear_message(scene, tmp_path
     bpy, *_ = scene
     parent = _read_only_folder(tmp_path)
     try:
-        with pytest.raises(RuntimeError, match=rf"Capture Dataset: cannot write in {parent} \(.+\): pick an output "
-                                               rf"folder you can write to"):
+        with pytest.raises(
+            RuntimeError,
+            match=rf"Capture Dataset: cannot write in {parent} \(.+\): pick an output "
+            rf"folder you can write to",
+        ):
             bpy.ops.nerf_deform.capture_dataset(output=str(parent / "data_never_made"))
     finally:
         (tmp_path / "locked").chmod(0o755)
@@ -379,5 +393,6 @@ def test_an_add_on_engine_is_refused_when_keeping_the_scenes_engine(scene, tmp_p
     bpy.context.scene.render.engine = "NERF_DEFORM"
     with pytest.raises(RuntimeError, match=r"render engine 'NERF_DEFORM' comes from an add-on.*set Engine to Cycles"):
         bpy.ops.nerf_deform.capture_dataset(output=str(tmp_path / "data"))
-    assert bpy.ops.nerf_deform.capture_dataset(output=str(tmp_path / "data"), engine="CYCLES", samples=1, count=1,
-                                               resolution=(16, 16)) == {"FINISHED"}
+    assert bpy.ops.nerf_deform.capture_dataset(
+        output=str(tmp_path / "data"), engine="CYCLES", samples=1, count=1, resolution=(16, 16)
+    ) == {"FINISHED"}

@@ -15,7 +15,6 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from fixtures import REPO
 from fixtures.blender_objects import scene_with_nerf
 
@@ -87,7 +86,9 @@ def test_a_cube_half_in_front_of_the_nerf_is_merged_by_depth(addon, sphere_nerf,
     shape.free()
     cube.data.materials.append(_emission_material(bpy, (0.0, 1.0, 0.0)))
     scene.collection.objects.link(cube)
-    cube.matrix_world = camera.matrix_world @ Matrix.LocRotScale((0.25, 0.0, -3.1), Euler((0.0, 0.6, 0.0)), (1.8, 0.6, 1.0))
+    cube.matrix_world = camera.matrix_world @ Matrix.LocRotScale(
+        (0.25, 0.0, -3.1), Euler((0.0, 0.6, 0.0)), (1.8, 0.6, 1.0)
+    )
 
     assert bpy.ops.nerf_deform.composite_with_scene() == {"FINISHED"}
     mesh_scene = mesh_scene_of(scene)
@@ -145,8 +146,9 @@ def test_a_cube_half_in_front_of_the_nerf_is_merged_by_depth(addon, sphere_nerf,
     bpy.ops.wm.open_mainfile(filepath={str(blend)!r})
     assert bpy.ops.render.render(animation=True) == {{"FINISHED"}}
     """
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(script)], cwd=REPO, capture_output=True, text=True,
-                          timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script)], cwd=REPO, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     farm = _rgba(_read_exr(tmp_path / "farm_0001.exr"))
     assert np.abs(farm - composite).max() < 1e-4
@@ -170,11 +172,11 @@ def _sphere_planar_depth(pinhole, center, radius, planar=True):
 @pytest.mark.slow
 def test_the_nerf_depth_pass_is_cycles_depth_of_the_same_surface(addon, sphere_nerf, tmp_path):
     bpy = addon
+    from fixtures.sphere_data import RADIUS
     from mathutils import Euler, Matrix
 
     from blender_nerf_deform.addon.data.camera import pinhole_from_blender
     from blender_nerf_deform.addon.render.composite import mesh_scene_of
-    from fixtures.sphere_data import RADIUS
 
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())

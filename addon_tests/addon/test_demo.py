@@ -12,9 +12,8 @@ import sys
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures import REPO
+from PIL import Image
 
 sys.path.insert(0, str(REPO))
 from tools.default_scene import REGIONS  # noqa: E402
@@ -29,18 +28,25 @@ def _box_corners(bounds):
 def _box_mask(bounds, cameras, shape):
     """Pixels inside the image-space bounding rectangle of a world box."""
     frame = cameras["frames"][0]
-    uv = project(_box_corners(bounds), frame["transform_matrix"], cameras["fl_x"], cameras["fl_y"], cameras["cx"], cameras["cy"])
+    uv = project(
+        _box_corners(bounds), frame["transform_matrix"], cameras["fl_x"], cameras["fl_y"], cameras["cx"], cameras["cy"]
+    )
     (u0, v0), (u1, v1) = np.floor(uv.min(0)).astype(int), np.ceil(uv.max(0)).astype(int)
     mask = np.zeros(shape, dtype=bool)
-    mask[max(v0, 0):max(v1, 0), max(u0, 0):max(u1, 0)] = True
+    mask[max(v0, 0) : max(v1, 0), max(u0, 0) : max(u1, 0)] = True
     return mask
 
 
 @pytest.fixture(scope="module")
 def quick_demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    proc = subprocess.run([sys.executable, str(REPO / "tools" / "demo.py"), "--quick", "--out", str(out)],
-                          cwd=REPO, capture_output=True, text=True, timeout=1200)
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "tools" / "demo.py"), "--quick", "--out", str(out)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return out, proc.stdout
 
@@ -63,8 +69,9 @@ def test_quick_demo_writes_everything_it_announces(quick_demo):
 def test_quick_demo_bends_the_arm_and_keeps_the_base(quick_demo):
     out, _ = quick_demo
     cameras = json.loads((out / "cameras.json").read_text())
-    first, last = (np.asarray(Image.open(out / "frames" / f"frame_{k:04d}.png").convert("RGBA"))[..., 3] / 255.0
-                   for k in (1, 6))
+    first, last = (
+        np.asarray(Image.open(out / "frames" / f"frame_{k:04d}.png").convert("RGBA"))[..., 3] / 255.0 for k in (1, 6)
+    )
     opaque_first, opaque_last = first > 0.5, last > 0.5
 
     # The arm's tip (top band and flag) leaves where it stood: most of its pixels go empty.
@@ -76,7 +83,9 @@ def test_quick_demo_bends_the_arm_and_keeps_the_base(quick_demo):
     assert appeared.sum() > 0.3 * tip.sum()
 
     # The pinned base stays: outside the arm's rest rectangle its silhouette is unchanged.
-    base = _box_mask(REGIONS["base"]["bounds"], cameras, first.shape) & ~_box_mask(REGIONS["arm"]["bounds"], cameras, first.shape)
+    base = _box_mask(REGIONS["base"]["bounds"], cameras, first.shape) & ~_box_mask(
+        REGIONS["arm"]["bounds"], cameras, first.shape
+    )
     a, b = opaque_first & base, opaque_last & base
     assert a.sum() > 50
     assert (a & b).sum() / (a | b).sum() > 0.9
@@ -118,14 +127,18 @@ def test_an_armature_rig_bends_the_arm_and_a_split_render_matches_one_run(quick_
     env = {**os.environ, "BLENDER_USER_RESOURCES": str(out / "blender_user")}
 
     def run(script):
-        proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+        proc = subprocess.run(
+            [sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
+        )
         assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
         return proc.stdout + proc.stderr
 
     rig = out / "rig.blend"  # beside demo.blend: the checkpoint's relative path holds
     run(_RIG.format(repo=str(REPO), blend=str(out / "demo.blend"), rig=str(rig)))
-    logs = [run(_RENDER.format(repo=str(REPO), rig=str(rig), start=s, end=e, folder=f))
-            for s, e, f in ((1, 6, "rig_one"), (1, 3, "rig_split"), (4, 6, "rig_split"))]
+    logs = [
+        run(_RENDER.format(repo=str(REPO), rig=str(rig), start=s, end=e, folder=f))
+        for s, e, f in ((1, 6, "rig_one"), (1, 3, "rig_split"), (4, 6, "rig_split"))
+    ]
     assert not any("inverted" in log for log in logs), "a rendered frame reported folded cage tets"
 
     names = [f"frame_{k:04d}.png" for k in range(1, 7)]
@@ -135,8 +148,12 @@ def test_an_armature_rig_bends_the_arm_and_a_split_render_matches_one_run(quick_
         assert np.array_equal(one, np.asarray(Image.open(out / "rig_split" / name))), name
 
     cameras = json.loads((out / "cameras.json").read_text())
-    first, last = (np.asarray(Image.open(out / "rig_one" / names[k]).convert("RGBA"))[..., 3] / 255.0 > 0.5 for k in (0, 5))
+    first, last = (
+        np.asarray(Image.open(out / "rig_one" / names[k]).convert("RGBA"))[..., 3] / 255.0 > 0.5 for k in (0, 5)
+    )
     tip = _box_mask(REGIONS["arm_tip"]["bounds"], cameras, first.shape) & first
     assert tip.sum() > 20 and (last & tip).sum() < 0.5 * tip.sum()  # the bones carried the tip away
-    base = _box_mask(REGIONS["base"]["bounds"], cameras, first.shape) & ~_box_mask(REGIONS["arm"]["bounds"], cameras, first.shape)
+    base = _box_mask(REGIONS["base"]["bounds"], cameras, first.shape) & ~_box_mask(
+        REGIONS["arm"]["bounds"], cameras, first.shape
+    )
     assert (first & base & last).sum() / ((first | last) & base).sum() > 0.9  # the pinned base stays

@@ -9,7 +9,6 @@ import re
 
 import numpy as np
 import pytest
-
 from fixtures.blender_objects import select_in_edit_mode
 
 BOX = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
@@ -114,7 +113,9 @@ def test_a_new_region_with_the_cursor_outside_the_box_covers_the_whole_box(addon
     _add_region(bpy, nerf)
     bpy.context.view_layer.update()
     d = edit_region_of(nerf)
-    assert np.allclose(d["center"], [1.0, 0.0, 0.5], atol=1e-6) and np.allclose(d["size"], [4 / 3, 4 / 3, 1 / 3], atol=1e-5)
+    assert np.allclose(d["center"], [1.0, 0.0, 0.5], atol=1e-6) and np.allclose(
+        d["size"], [4 / 3, 4 / 3, 1 / 3], atol=1e-5
+    )
 
 
 def test_regions_without_a_box_are_refused_before_anything_is_extracted(addon):
@@ -180,12 +181,12 @@ def test_a_deleted_region_is_forgotten_and_the_region_survives_save_and_reopen(a
 @pytest.mark.slow
 def test_extract_in_a_region_cuts_the_sphere_and_the_cage_is_pinned_at_the_cut(addon, sphere_nerf, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon.worker import jobs
     from blender_nerf_deform.addon.data.cage_store import CUT_PIN_GROUP, cage_pins, load_cage, load_embedding
-    from blender_nerf_deform.addon.deform.poses import deformed_cage
     from blender_nerf_deform.addon.data.mesh_attributes import cut_flags
     from blender_nerf_deform.addon.deform.handles import group_vertices
+    from blender_nerf_deform.addon.deform.poses import deformed_cage
     from blender_nerf_deform.addon.edit.regions import edit_region_of, extracted_regions
+    from blender_nerf_deform.addon.worker import jobs
 
     ckpt, _ = sphere_nerf
     nerf = nerf_with_sphere_surface(bpy, ckpt)
@@ -306,8 +307,12 @@ def test_a_single_region_file_still_counts_its_region_and_its_recorded_region(ad
     bpy = addon
     import json
 
-    from blender_nerf_deform.addon.edit.regions import (SURFACE_REGION_KEY, edit_regions_of, extracted_regions,
-                                                      regions_of)
+    from blender_nerf_deform.addon.edit.regions import (
+        SURFACE_REGION_KEY,
+        edit_regions_of,
+        extracted_regions,
+        regions_of,
+    )
 
     nerf = nerf_with_sphere_surface(bpy)
     old = bpy.data.objects.new("Old Region", None)
@@ -322,8 +327,14 @@ def test_a_single_region_file_still_counts_its_region_and_its_recorded_region(ad
     mesh = bpy.data.meshes.new("Surface")
     surface = bpy.data.objects.new("Surface", mesh)
     one = {"center": [0.0, 0.1, 0.2], "size": [1.0, 1.0, 1.0], "rotation_euler": [0.0, 0.0, 0.0]}
-    for text, expected in ((json.dumps(one), [one]), (json.dumps([one, one]), [one, one]), ("", []),
-                           ("not json", []), ("[1, 2]", []), ('"text"', [])):
+    for text, expected in (
+        (json.dumps(one), [one]),
+        (json.dumps([one, one]), [one, one]),
+        ("", []),
+        ("not json", []),
+        ("[1, 2]", []),
+        ('"text"', []),
+    ):
         mesh[SURFACE_REGION_KEY] = text
         assert extracted_regions(surface) == expected, text
 
@@ -370,11 +381,11 @@ def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon,
     separately: one mesh with two parts, one cage with two pieces, each pinned at its own cut; a
     handle on the left part moves the left piece only, and the frame changes on the left only."""
     bpy = addon
-    from blender_nerf_deform.addon.worker import jobs
     from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage
-    from blender_nerf_deform.addon.deform.poses import deformed_cage
     from blender_nerf_deform.addon.data.mesh_attributes import cut_flags, part_labels
+    from blender_nerf_deform.addon.deform.poses import deformed_cage
     from blender_nerf_deform.addon.edit.regions import edit_regions_of, extracted_regions, regions_of, same_regions
+    from blender_nerf_deform.addon.worker import jobs
 
     ckpt, _ = sphere_nerf
     nerf = nerf_with_sphere_surface(bpy, ckpt)
@@ -387,7 +398,9 @@ def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon,
     _place(bpy, right, (0.2, 0.0, -0.35), (0.8, 2.0, 1.1))
     n_objects = len(bpy.data.objects)
     bpy.context.view_layer.objects.active = nerf
-    with pytest.raises(RuntimeError, match=rf"edit regions 1 and 2 overlap.*1: {re.escape(left.name)}, 2: {re.escape(right.name)}"):
+    with pytest.raises(
+        RuntimeError, match=rf"edit regions 1 and 2 overlap.*1: {re.escape(left.name)}, 2: {re.escape(right.name)}"
+    ):
         bpy.ops.nerf_deform.extract_mesh()
     assert nerf.nerf_deform.surface is None and len(bpy.data.objects) == n_objects
 
@@ -468,8 +481,9 @@ def test_two_regions_two_objects_each_with_its_own_cage_handle_and_render(addon,
 
 def test_add_handle_says_when_its_vertices_span_two_regions_objects(addon, capfd):
     bpy = addon
-    from blender_nerf_deform.addon.data.mesh_attributes import part_labels, set_part_labels
     from fixtures.blender_objects import nerf_with_grid_surface
+
+    from blender_nerf_deform.addon.data.mesh_attributes import part_labels, set_part_labels
 
     nerf, surface, verts = nerf_with_grid_surface(bpy)
     set_part_labels(surface.data, (verts[:, 0] > 0).astype(np.int32))  # two objects: x <= 0 and x > 0

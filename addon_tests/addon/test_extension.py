@@ -14,10 +14,9 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from fixtures import REPO
 
 from tools.build_extension import find_blender_ext, stage
-
-from fixtures import REPO
 
 REPO_MODULE = "nerf_deform_test"
 EXT_MODULE = f"bl_ext.{REPO_MODULE}.blender_nerf_deform"
@@ -34,7 +33,13 @@ def _engine_ids(bpy):
         return False
 
 
-STANDARD_PANELS = ("RENDER_PT_format", "RENDER_PT_frame_range", "RENDER_PT_output", "DATA_PT_lens", "RENDER_PT_color_management")
+STANDARD_PANELS = (
+    "RENDER_PT_format",
+    "RENDER_PT_frame_range",
+    "RENDER_PT_output",
+    "DATA_PT_lens",
+    "RENDER_PT_color_management",
+)
 
 
 def _panels_show_engine(bpy):
@@ -62,7 +67,9 @@ def _nothing_registered(bpy):
 
 
 def _validate(path):
-    return subprocess.run([sys.executable, str(find_blender_ext()), "validate", str(path)], capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, str(find_blender_ext()), "validate", str(path)], capture_output=True, text=True
+    )
 
 
 def test_repository_manifest_validates(tmp_path):
@@ -81,8 +88,15 @@ def test_validator_rejects_a_broken_manifest(tmp_path):
 
 def test_zip_has_the_extension_layout(extension_zip):
     names = set(zipfile.ZipFile(extension_zip).namelist())
-    assert {"blender_manifest.toml", "__init__.py", "addon/__init__.py", "engine/__init__.py",
-            "addon/capture/runner.py", "addon/capture/dataset.py", "docs/ARCHITECTURE.md"} <= names
+    assert {
+        "blender_manifest.toml",
+        "__init__.py",
+        "addon/__init__.py",
+        "engine/__init__.py",
+        "addon/capture/runner.py",
+        "addon/capture/dataset.py",
+        "docs/ARCHITECTURE.md",
+    } <= names
     assert not any("__pycache__" in name or name.endswith(".pyc") for name in names)
 
 
@@ -93,7 +107,9 @@ def installed(blender, extension_zip, tmp_path):
         name="NeRF Deform Test", module=REPO_MODULE, custom_directory=str(tmp_path / "repo"), source="USER"
     )
     assert _nothing_registered(bpy)
-    result = bpy.ops.extensions.package_install_files(filepath=str(extension_zip), repo=REPO_MODULE, enable_on_install=True)
+    result = bpy.ops.extensions.package_install_files(
+        filepath=str(extension_zip), repo=REPO_MODULE, enable_on_install=True
+    )
     assert result == {"FINISHED"}
     return bpy, tmp_path / "repo"
 
@@ -130,7 +146,9 @@ def test_capture_dataset_runs_from_the_installed_extension(installed, tmp_path):
     bpy.context.scene.render.engine = "CYCLES"
     bpy.context.scene.cycles.samples = 1
     bpy.ops.mesh.primitive_cube_add()  # selected
-    assert bpy.ops.nerf_deform.capture_dataset(output=str(tmp_path / "data"), count=2, resolution=(16, 16)) == {"FINISHED"}
+    assert bpy.ops.nerf_deform.capture_dataset(output=str(tmp_path / "data"), count=2, resolution=(16, 16)) == {
+        "FINISHED"
+    }
     meta = json.loads((tmp_path / "data" / "transforms.json").read_text())
     assert len(meta["frames"]) == 2 and meta["generator"]["tool"].startswith("Capture Dataset")
     assert all((tmp_path / "data" / f["file_path"]).is_file() for f in meta["frames"])
@@ -197,8 +215,12 @@ def test_no_property_has_a_poll_callback(blender):
     try:
         classes = _our_classes(bpy)
         assert any(cls.__name__ == "NERFDEFORM_ObjectSettings" for cls in classes)
-        polled = [f"{cls.__name__}.{name}" for cls in classes for name, prop in getattr(cls, "__annotations__", {}).items()
-                  if "poll" in getattr(prop, "keywords", {})]
+        polled = [
+            f"{cls.__name__}.{name}"
+            for cls in classes
+            for name, prop in getattr(cls, "__annotations__", {}).items()
+            if "poll" in getattr(prop, "keywords", {})
+        ]
         assert not polled, polled
     finally:
         blender_nerf_deform.unregister()

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from fixtures.sphere_data import RADIUS
 
 

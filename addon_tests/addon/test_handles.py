@@ -87,8 +87,8 @@ def test_empty_selection_and_overlaps_are_reported_and_change_nothing(addon):
 
 def test_pin_remove_and_reset(addon):
     bpy = addon
-    from blender_nerf_deform.addon.deform.handles import group_vertices, handle_target
     from blender_nerf_deform.addon.data.properties import PIN_GROUP, handles_of
+    from blender_nerf_deform.addon.deform.handles import group_vertices, handle_target
 
     nerf, surface, verts = nerf_with_grid_surface(bpy)
     bottom = np.flatnonzero(verts[:, 2] < -0.4)
@@ -225,8 +225,10 @@ def test_a_handle_next_to_another_refines_the_stored_cage_where_they_meet(addon)
     rest, tets = load_cage(cage.data)
     tet_ids, weights = load_embedding(surface.data)
     assert len(tets) > n_tets
-    assert len(shared_vertices(tets, tet_ids, weights, [top, below], group_vertices(surface, PIN_GROUP),
-                               cage_pins(cage))) == 0
+    assert (
+        len(shared_vertices(tets, tet_ids, weights, [top, below], group_vertices(surface, PIN_GROUP), cage_pins(cage)))
+        == 0
+    )
 
 
 @pytest.mark.parametrize("case", ["modifier", "too close", "bad embedding"])

@@ -17,11 +17,12 @@ import stat
 
 import numpy as np
 import pytest
-
-from fixtures.processes import SCENE_HELPERS, assert_clean, run_blender
 from fixtures.blender_objects import select_in_edit_mode
+from fixtures.processes import SCENE_HELPERS, assert_clean, run_blender
 
-_SEQUENCE_HELPERS = SCENE_HELPERS + '''
+_SEQUENCE_HELPERS = (
+    SCENE_HELPERS
+    + '''
 import json, time
 from blender_nerf_deform.addon.worker import client as worker_client
 from blender_nerf_deform.addon.render.preview_render import current_job
@@ -90,6 +91,7 @@ def counts():
     return {role: len([o for o in bpy.data.objects if o.nerf_deform.role == role])
             for role in ("NERF", "SURFACE", "CAGE", "HANDLE")}
 '''
+)
 
 _SETUP = """
 assert bpy.ops.nerf_deform.load_nerf(filepath={ckpt!r}) == {{"FINISHED"}}
@@ -122,7 +124,7 @@ def setup_blend(sphere_nerf, tmp_path_factory):
 
 def _outcomes(stdout: str) -> dict:
     (line,) = [line for line in stdout.splitlines() if line.startswith("OUTCOMES ")]
-    return json.loads(line[len("OUTCOMES "):])
+    return json.loads(line[len("OUTCOMES ") :])
 
 
 def _check(outcomes: dict, expected: dict) -> None:
@@ -190,17 +192,34 @@ def test_every_operator_twice_in_a_row(sphere_nerf, tmp_path):
     ckpt, _ = sphere_nerf
     proc = run_blender(_SEQUENCE_HELPERS + _TWICE.format(ckpt=str(ckpt), out=str(tmp_path)), cwd=tmp_path)
     outcomes = _outcomes(assert_clean(proc))
-    _check(outcomes, {
-        "load 1": "ok", "load 2": "ok", "extract 1": "ok", "extract 2": "ok",
-        "build cage 1": "ok", "build cage 2": "ok",
-        "add handle 1": "ok", "add handle 2": r"overlaps NeRF run Handle \(\d+ vertices\)",
-        "pin 1": "ok", "pin 2": "ok", "reset pose 1": "ok", "reset pose 2": "ok",
-        "preview 1": "ok", "preview 2": "ok", "cancel preview 1": "ok",
-        "cancel preview 2": r"No preview render is running", "preview 3": "ok", "preview 3 done": "ok",
-        "render 1": "ok", "render 2": "ok",
-        "remove handle 1": "ok", "remove handle 2": r"Make a handle of a NeRF the active object",
-        "render reopened": "ok",
-    })
+    _check(
+        outcomes,
+        {
+            "load 1": "ok",
+            "load 2": "ok",
+            "extract 1": "ok",
+            "extract 2": "ok",
+            "build cage 1": "ok",
+            "build cage 2": "ok",
+            "add handle 1": "ok",
+            "add handle 2": r"overlaps NeRF run Handle \(\d+ vertices\)",
+            "pin 1": "ok",
+            "pin 2": "ok",
+            "reset pose 1": "ok",
+            "reset pose 2": "ok",
+            "preview 1": "ok",
+            "preview 2": "ok",
+            "cancel preview 1": "ok",
+            "cancel preview 2": r"No preview render is running",
+            "preview 3": "ok",
+            "preview 3 done": "ok",
+            "render 1": "ok",
+            "render 2": "ok",
+            "remove handle 1": "ok",
+            "remove handle 2": r"Make a handle of a NeRF the active object",
+            "render reopened": "ok",
+        },
+    )
     assert outcomes["counts"][1] == {"NERF": 2, "SURFACE": 1, "CAGE": 1, "HANDLE": 0}
 
 
@@ -249,30 +268,52 @@ def test_delete_each_part_then_run_every_other_operator_save_and_reopen(setup_bl
     """Each part the add-on made (a handle, the cage, the mesh, the NeRF) deleted as the outliner,
     the viewport's Delete or a script do it; then every operator, a preview, a render, a save and a
     render of the reopened file. The deleted part is gone from the saved file."""
-    proc = run_blender(_SEQUENCE_HELPERS + _DELETIONS.format(setup=str(setup_blend), out=str(tmp_path), how=how),
-                       cwd=tmp_path)
+    proc = run_blender(
+        _SEQUENCE_HELPERS + _DELETIONS.format(setup=str(setup_blend), out=str(tmp_path), how=how), cwd=tmp_path
+    )
     outcomes = _outcomes(assert_clean(proc))
     has_cage = r"already has a cage or handles made on its mesh.*delete the cage object and the handles first"
-    _check(outcomes, {
-        "handle: extract_mesh": has_cage, "handle: build_cage": "ok", "handle: add_handle": "ok",
-        "handle: pin_selection": "ok", "handle: reset_pose": "ok", "handle: remove_handle": "ok",
-        "handle: preview done": "ok", "handle: render": "ok", "handle: render reopened": "ok",
-
-        "cage: extract_mesh": has_cage, "cage: build_cage": "ok", "cage: add_handle": "ok",
-        "cage: pin_selection": "ok", "cage: reset_pose": "ok", "cage: remove_handle": "ok",
-        "cage: preview done": "ok", "cage: render": "ok", "cage: render reopened": "ok",
-
-        "surface: extract_mesh": has_cage, "surface: build_cage": r"has no extracted mesh yet: run Extract Mesh first",
-        "surface: add_handle": _NO_SURFACE, "surface: pin_selection": _NO_SURFACE, "surface: reset_pose": "ok",
-        "surface: remove_handle": "ok", "surface: preview done": "ok", "surface: render": "ok",
-        "surface: render reopened": "ok",
-
-        "nerf: extract_mesh": _NO_NERF, "nerf: build_cage": _NO_NERF,
-        "nerf: add_handle": r"is no longer the extracted mesh of a NeRF", "nerf: pin_selection": r"is no longer",
-        "nerf: reset_pose": _NO_NERF, "nerf: remove_handle": "ok",
-        "nerf: preview_render": r"no NeRF object in the scene to preview",
-        "nerf: render": r"no NeRF object in the scene to render", "nerf: render reopened": r"no NeRF object",
-    })
+    _check(
+        outcomes,
+        {
+            "handle: extract_mesh": has_cage,
+            "handle: build_cage": "ok",
+            "handle: add_handle": "ok",
+            "handle: pin_selection": "ok",
+            "handle: reset_pose": "ok",
+            "handle: remove_handle": "ok",
+            "handle: preview done": "ok",
+            "handle: render": "ok",
+            "handle: render reopened": "ok",
+            "cage: extract_mesh": has_cage,
+            "cage: build_cage": "ok",
+            "cage: add_handle": "ok",
+            "cage: pin_selection": "ok",
+            "cage: reset_pose": "ok",
+            "cage: remove_handle": "ok",
+            "cage: preview done": "ok",
+            "cage: render": "ok",
+            "cage: render reopened": "ok",
+            "surface: extract_mesh": has_cage,
+            "surface: build_cage": r"has no extracted mesh yet: run Extract Mesh first",
+            "surface: add_handle": _NO_SURFACE,
+            "surface: pin_selection": _NO_SURFACE,
+            "surface: reset_pose": "ok",
+            "surface: remove_handle": "ok",
+            "surface: preview done": "ok",
+            "surface: render": "ok",
+            "surface: render reopened": "ok",
+            "nerf: extract_mesh": _NO_NERF,
+            "nerf: build_cage": _NO_NERF,
+            "nerf: add_handle": r"is no longer the extracted mesh of a NeRF",
+            "nerf: pin_selection": r"is no longer",
+            "nerf: reset_pose": _NO_NERF,
+            "nerf: remove_handle": "ok",
+            "nerf: preview_render": r"no NeRF object in the scene to preview",
+            "nerf: render": r"no NeRF object in the scene to render",
+            "nerf: render reopened": r"no NeRF object",
+        },
+    )
     # What was deleted is not in the saved file; what was made again is, once.
     assert outcomes["handle: counts"][1] == {"NERF": 1, "SURFACE": 1, "CAGE": 1, "HANDLE": 0}
     assert outcomes["cage: counts"][1] == {"NERF": 1, "SURFACE": 1, "CAGE": 1, "HANDLE": 1}
@@ -324,10 +365,25 @@ def test_undo_and_redo_of_a_deleted_cage_and_of_build_cage(setup_blend, tmp_path
         pytest.skip("undo cannot run without a window in this Blender")
     outcomes = _outcomes(out)
     assert {k: v[1] for k, v in outcomes.items() if k in ("deleted", "cage back", "deleted again", "no cage")} == {
-        "deleted": True, "cage back": True, "deleted again": True, "no cage": True}
-    _check(outcomes, {"undo the delete": "ok", "render undone": "ok", "redo the delete": "ok", "render redone": "ok",
-                      "build cage": "ok", "undo the build": "ok", "redo the build": "ok", "render rebuilt": "ok",
-                      "extract with handles": r"delete the cage object and the handles first"})
+        "deleted": True,
+        "cage back": True,
+        "deleted again": True,
+        "no cage": True,
+    }
+    _check(
+        outcomes,
+        {
+            "undo the delete": "ok",
+            "render undone": "ok",
+            "redo the delete": "ok",
+            "render redone": "ok",
+            "build cage": "ok",
+            "undo the build": "ok",
+            "redo the build": "ok",
+            "render rebuilt": "ok",
+            "extract with handles": r"delete the cage object and the handles first",
+        },
+    )
 
 
 # -- what a deleted part means, in this process -------------------------------------------------
@@ -470,8 +526,8 @@ def test_deleted_handles_surface_and_nerf_are_gone_though_something_holds_them(a
 
 def test_a_nerf_scaled_to_zero_is_named_by_the_handles_and_reset_pose(addon):
     bpy = addon
-    from blender_nerf_deform.addon.deform.handles import handle_target
     from blender_nerf_deform.addon.data.properties import PlacementError
+    from blender_nerf_deform.addon.deform.handles import handle_target
 
     nerf, surface = nerf_with_grid_surface(bpy)
     nerf.name = "Lego NeRF"
@@ -519,7 +575,9 @@ def test_a_worker_slow_to_start_is_said_to_be_slow_not_broken(blender, tmp_path,
     failing = tmp_path / "failing_python"
     failing.write_text("#!/bin/sh\necho 'no module named torch' >&2\nexit 3\n")
     failing.chmod(failing.stat().st_mode | stat.S_IEXEC)
-    with pytest.raises(WorkerError, match=r"failed to start: exited with code 3; its last output:\nno module named torch"):
+    with pytest.raises(
+        WorkerError, match=r"failed to start: exited with code 3; its last output:\nno module named torch"
+    ):
         WorkerClient(str(failing)).ensure_started()
 
 
@@ -527,7 +585,9 @@ def test_a_worker_slow_to_start_is_said_to_be_slow_not_broken(blender, tmp_path,
 # Each sequence runs in a fresh Blender process from the set-up file; the outcomes say what each step
 # reported, and what it left in the output folder.
 
-_VOLUME_HELPERS = _SEQUENCE_HELPERS + '''
+_VOLUME_HELPERS = (
+    _SEQUENCE_HELPERS
+    + """
 import os, shutil
 from blender_nerf_deform.addon import api
 from blender_nerf_deform.addon.export.bake_volume import volume_file_name
@@ -546,7 +606,8 @@ def bake(label, nerf, folder, **kwargs):
 
 def owners(path):
     return sorted({str(g["nerf_deform_nerf"]) for g in openvdb_module().readAllGridMetadata(str(path))})
-'''
+"""
+)
 
 _BAKE_PATH = """
 setup, out = {setup!r}, {out!r}
@@ -632,20 +693,27 @@ print("OUTCOMES", json.dumps(outcomes))
 def test_bad_bakes_in_blender_say_what_and_leave_nothing(setup_blend, tmp_path):
     proc = run_blender(_VOLUME_HELPERS + _BAKE_PATH.format(setup=str(setup_blend), out=str(tmp_path)), cwd=tmp_path)
     outcomes = _outcomes(assert_clean(proc))
-    _check(outcomes, {
-        "tiny region": r"Bake Volume: frame 1.*1e-05 x 1e-05 x 1e-05 NeRF units\) is too small for one voxel",
-        "fine region": r"resolution 256 has voxels of .* bake it at a resolution of at most 100\b",
-        "folder in the way": r"_0002\.vdb: it is a folder",
-        "file in the way": r"_0001\.vdb exists and is not an OpenVDB file: it is left alone",
-        "bake Statue A": "ok", "bake Statue_A": "ok", "bake Statue/A": "ok",
-        "other bake in the way": r"Statue_A_0002\.vdb exists and is a bake of 'Statue A', not of 'Statue_A'",
-        "own bake replaced": "ok", "volume name taken": "ok", "scene range": "ok",
-        "frame 6 not posable": r"Bake Volume: frame 6: NeRF object .* has a zero scale",
-        "render NaN handle": r"handle '[^']+' has a non-finite transform \(location nan, ",
-        "bake NaN handle": r"Bake Volume: frame 5: handle '[^']+' has a non-finite transform",
-        "render inf handle": r"handle '[^']+' moves its region beyond 1e\+09 NeRF units \(location 3\.4e\+38, ",
-        "bake inf handle": r"Bake Volume: frame 5: handle '[^']+' moves its region beyond 1e\+09",
-    })
+    _check(
+        outcomes,
+        {
+            "tiny region": r"Bake Volume: frame 1.*1e-05 x 1e-05 x 1e-05 NeRF units\) is too small for one voxel",
+            "fine region": r"resolution 256 has voxels of .* bake it at a resolution of at most 100\b",
+            "folder in the way": r"_0002\.vdb: it is a folder",
+            "file in the way": r"_0001\.vdb exists and is not an OpenVDB file: it is left alone",
+            "bake Statue A": "ok",
+            "bake Statue_A": "ok",
+            "bake Statue/A": "ok",
+            "other bake in the way": r"Statue_A_0002\.vdb exists and is a bake of 'Statue A', not of 'Statue_A'",
+            "own bake replaced": "ok",
+            "volume name taken": "ok",
+            "scene range": "ok",
+            "frame 6 not posable": r"Bake Volume: frame 6: NeRF object .* has a zero scale",
+            "render NaN handle": r"handle '[^']+' has a non-finite transform \(location nan, ",
+            "bake NaN handle": r"Bake Volume: frame 5: handle '[^']+' has a non-finite transform",
+            "render inf handle": r"handle '[^']+' moves its region beyond 1e\+09 NeRF units \(location 3\.4e\+38, ",
+            "bake inf handle": r"Bake Volume: frame 5: handle '[^']+' moves its region beyond 1e\+09",
+        },
+    )
     assert outcomes["tiny left"][1] is None and outcomes["inf left"][1] is None
     folder_left = outcomes["folder left"][1]
     assert len(folder_left) == 1 and folder_left[0].endswith("_0002.vdb")  # the folder alone: no frame 1, no staging
@@ -694,11 +762,14 @@ print("OUTCOMES", json.dumps(outcomes))
 @pytest.mark.parametrize("how", ["remove", "unlink", "rename"])
 def test_the_nerf_deleted_or_renamed_during_a_range_bake_ends_it_with_one_message(setup_blend, tmp_path, how):
     """A script (here a frame-change handler) removes, unlinks or renames the NeRF at frame 2 of 3."""
-    proc = run_blender(_VOLUME_HELPERS + _NERF_GOES_MID_BAKE.format(setup=str(setup_blend), out=str(tmp_path), how=how),
-                       cwd=tmp_path)
+    proc = run_blender(
+        _VOLUME_HELPERS + _NERF_GOES_MID_BAKE.format(setup=str(setup_blend), out=str(tmp_path), how=how), cwd=tmp_path
+    )
     outcomes = _outcomes(assert_clean(proc))
     what = "was renamed to 'Renamed NeRF'" if how == "rename" else "was deleted"
-    _check(outcomes, {"bake": rf"Bake Volume: frame 2: NeRF object '[^']+' {what} while it was baked; nothing was written"})
+    _check(
+        outcomes, {"bake": rf"Bake Volume: frame 2: NeRF object '[^']+' {what} while it was baked; nothing was written"}
+    )
     assert outcomes["left"][1] == [None, 1]
 
 
@@ -707,14 +778,20 @@ _DAMAGES = {
     # `put` deletes a property before writing it: bpy 5.0.1 corrupts its heap when an ID-property array
     # is assigned over one of another length (cage_store.py).
     "tets as text": ("cage", 'put(cage.data, "nerf_deform_tets", "abc")'),
-    "tets as floats": ("cage", 'put(cage.data, "nerf_deform_tets", np.array(cage.data["nerf_deform_tets"], float) + 0.5)'),
+    "tets as floats": (
+        "cage",
+        'put(cage.data, "nerf_deform_tets", np.array(cage.data["nerf_deform_tets"], float) + 0.5)',
+    ),
     "tets cut short": ("cage", 'put(cage.data, "nerf_deform_tets", np.array(cage.data["nerf_deform_tets"])[:-3])'),
     "tet outside the cage": ("cage", 'set_item(cage.data, "nerf_deform_tets", 0, 10**6)'),
     "tet repeating a vertex": ("cage", 'set_item(cage.data, "nerf_deform_tets", 1, cage.data["nerf_deform_tets"][0])'),
     "rest vertex NaN": ("cage", 'set_item(cage.data, "nerf_deform_rest_vertices", 4, float("nan"))'),
     "rest vertices deleted": ("cage", 'del cage.data["nerf_deform_rest_vertices"]'),
     "pins at the cut as text": ("cage", 'put(cage.data, "nerf_deform_cut_pins", "none")'),
-    "embedding outside the cage": ("surface", 'set_item(surface.data, "nerf_deform_embed_tet", 3, len(cage.data["nerf_deform_tets"]) // 4)'),
+    "embedding outside the cage": (
+        "surface",
+        'set_item(surface.data, "nerf_deform_embed_tet", 3, len(cage.data["nerf_deform_tets"]) // 4)',
+    ),
     "embedding weights of 3 values": ("surface", 'put(surface.data, "nerf_deform_embed_weights", [1, 2, 3])'),
     "embedding weights NaN": ("surface", 'set_item(surface.data, "nerf_deform_embed_weights", 0, float("nan"))'),
     "embedding count as text": ("surface", 'put(surface.data, "nerf_deform_embed_vertex_count", "many")'),
@@ -764,23 +841,35 @@ def test_damaged_data_in_the_blend_is_one_message_naming_the_object_and_the_repa
     proc = run_blender(script, cwd=tmp_path, timeout=600)
     out = assert_clean(proc)
     outcomes = _outcomes(out)
-    expected = {"reopened: render": r"is damaged: its tets .* is text 'abc'", "reopened: build cage": "ok",
-                "reopened: render repaired": "ok"}
+    expected = {
+        "reopened: render": r"is damaged: its tets .* is text 'abc'",
+        "reopened: build cage": "ok",
+        "reopened: render repaired": "ok",
+    }
     for label in _DAMAGES:
         held = re.escape(outcomes[f"{label}: names"][1])
-        damaged = rf"NeRF data stored in '{held}' \(mesh '[^']+'\) is damaged: .*select its NeRF and run Build Cage again"
+        damaged = (
+            rf"NeRF data stored in '{held}' \(mesh '[^']+'\) is damaged: .*select its NeRF and run Build Cage again"
+        )
         expected.update({f"{label}: before": "ok", f"{label}: render": damaged, f"{label}: bake": damaged})
         if _DAMAGES[label][0] == "cage" and label != "pins at the cut as text":  # the cage's modifiers read it too
             expected[f"{label}: render modifiers"] = damaged
     _check(outcomes, expected)
     assert all(outcomes[f"{label}: left"][1] is None for label in _DAMAGES), outcomes
-    specific = {"tets as text": "is text 'abc', not an array of integers", "tets as floats": "is an array of floats",
-                "tets cut short": "not whole rows of 4", "tet outside the cage": "tet 0 of its cage names vertices",
-                "tet repeating a vertex": "names a vertex twice", "rest vertex NaN": "rest vertex 1 of its cage is",
-                "rest vertices deleted": "rest vertices (nerf_deform_rest_vertices) is missing",
-                "pins at the cut as text": "cage vertices pinned at the cut", "embedding outside the cage": "vertex 3 is embedded in tet",
-                "embedding weights of 3 values": "hold 3 values, not whole rows of 4", "embedding weights NaN": "vertex 0 are [nan",
-                "embedding count as text": "vertex count (nerf_deform_embed_vertex_count) is text 'many'"}
+    specific = {
+        "tets as text": "is text 'abc', not an array of integers",
+        "tets as floats": "is an array of floats",
+        "tets cut short": "not whole rows of 4",
+        "tet outside the cage": "tet 0 of its cage names vertices",
+        "tet repeating a vertex": "names a vertex twice",
+        "rest vertex NaN": "rest vertex 1 of its cage is",
+        "rest vertices deleted": "rest vertices (nerf_deform_rest_vertices) is missing",
+        "pins at the cut as text": "cage vertices pinned at the cut",
+        "embedding outside the cage": "vertex 3 is embedded in tet",
+        "embedding weights of 3 values": "hold 3 values, not whole rows of 4",
+        "embedding weights NaN": "vertex 0 are [nan",
+        "embedding count as text": "vertex count (nerf_deform_embed_vertex_count) is text 'many'",
+    }
     for label, part in specific.items():
         assert part in outcomes[f"{label}: render"][1], (label, outcomes[f"{label}: render"][1])
     assert "NeRF Deform preview of" in out  # the live preview said it, once per damage, on the console
@@ -835,10 +924,13 @@ def test_errors_nobody_foresaw_end_in_one_message_naming_their_log(setup_blend, 
     out = assert_clean(proc)  # no traceback on the console
     outcomes = _outcomes(out)
     log = re.escape(str(logs))
-    _check(outcomes, {
-        "bake with a bug": rf"Bake Volume: unexpected error \(TypeError: a bug while writing frame 2\); its traceback is in {log}/",
-        "render with a bug": rf"NeRF Deform: .*frame 1: unexpected error \(ZeroDivisionError: division by zero\); its traceback is in {log}/",
-    })
+    _check(
+        outcomes,
+        {
+            "bake with a bug": rf"Bake Volume: unexpected error \(TypeError: a bug while writing frame 2\); its traceback is in {log}/",
+            "render with a bug": rf"NeRF Deform: .*frame 1: unexpected error \(ZeroDivisionError: division by zero\); its traceback is in {log}/",
+        },
+    )
     assert outcomes["bake left"][1] == [None, 1]  # no folder, no staged frame 1, the frame shown restored
     preview_lines = [line for line in out.splitlines() if "IndexError: list index out of range" in line]
     assert len(preview_lines) == 1 and "NeRF Deform preview of" in preview_lines[0], out[-3000:]
@@ -952,21 +1044,29 @@ def test_paths_ranges_and_stored_pointers_a_script_can_break(setup_blend, tmp_pa
     out = assert_clean(proc)
     outcomes = _outcomes(out)
     damaged_handle = r"handle '[^']+': its rest matrix \(stored when it was made\) is damaged \(not {}"
-    _check(outcomes, {
-        "relative folder": r"the folder 'vol' is relative: start it with // for the \.blend's folder \(//vol\)",
-        "link to nowhere": r"dangling is a symbolic link to .*nowhere, which does not exist",
-        "pipe in the way": r"_0001\.vdb: it is not a file \(a pipe",
-        "negative frames": r"frame -2 cannot be baked: Blender reads no negative frame number",
-        "frames beyond the last": r"frame 2147483646 cannot be baked: Blender's frames end at 1048574",
-        "range from 0": "ok", "renamed NeRF": "ok", "handles": "ok", "load imposter": "ok", "bake a/b": "ok", "bake its imposter": "ok",
-        "huge region": r"\(1e\+06 x 1e\+06 x 1e\+06 NeRF units\) at resolution 10 has voxels of .* larger than the NeRF's",
-        "mesh is an empty": r"NeRF object '[^']+': its extracted mesh is set to 'Empty', an empty, not a mesh",
-        "cage is a cube": r"its cage is set to 'Cube', which holds no NeRF cage .* run Build Cage again",
-        "rest matrix singular": damaged_handle.format("invertible"),
-        "rest matrix NaN": "Bake Volume: frame 1: " + damaged_handle.format("finite"),
-        "group renamed": r"names vertex group '[^']+', which '[^']+' does not have \(renamed or deleted\?\)",
-        "extract with a bug": r"Extract Mesh: unexpected error \(Odd: <its message could not be read>\); its traceback is in",
-    })
+    _check(
+        outcomes,
+        {
+            "relative folder": r"the folder 'vol' is relative: start it with // for the \.blend's folder \(//vol\)",
+            "link to nowhere": r"dangling is a symbolic link to .*nowhere, which does not exist",
+            "pipe in the way": r"_0001\.vdb: it is not a file \(a pipe",
+            "negative frames": r"frame -2 cannot be baked: Blender reads no negative frame number",
+            "frames beyond the last": r"frame 2147483646 cannot be baked: Blender's frames end at 1048574",
+            "range from 0": "ok",
+            "renamed NeRF": "ok",
+            "handles": "ok",
+            "load imposter": "ok",
+            "bake a/b": "ok",
+            "bake its imposter": "ok",
+            "huge region": r"\(1e\+06 x 1e\+06 x 1e\+06 NeRF units\) at resolution 10 has voxels of .* larger than the NeRF's",
+            "mesh is an empty": r"NeRF object '[^']+': its extracted mesh is set to 'Empty', an empty, not a mesh",
+            "cage is a cube": r"its cage is set to 'Cube', which holds no NeRF cage .* run Build Cage again",
+            "rest matrix singular": damaged_handle.format("invertible"),
+            "rest matrix NaN": "Bake Volume: frame 1: " + damaged_handle.format("finite"),
+            "group renamed": r"names vertex group '[^']+', which '[^']+' does not have \(renamed or deleted\?\)",
+            "extract with a bug": r"Extract Mesh: unexpected error \(Odd: <its message could not be read>\); its traceback is in",
+        },
+    )
     assert outcomes["folders left"][1] == ["dangling", "pipe"]  # nothing in Blender's working directory
     assert outcomes["played"][1] == ["NeRF run_0000.vdb", "NeRF run_0001.vdb"]
     assert outcomes["volumes"][1] == ["Statue Volume"]
@@ -982,15 +1082,24 @@ def _vdb_tool(*args):
 
     from fixtures import REPO
 
-    return subprocess.run([sys.executable, str(REPO / "tools" / "vdb_from_npz.py"), *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, str(REPO / "tools" / "vdb_from_npz.py"), *map(str, args)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def _baked(folder, name, **changes):
     """A small baked frame as `bake-volume` writes it, with arrays replaced by `changes`."""
-    arrays = {"shape": np.array([4, 4, 4]), "index_to_nerf": np.diag([0.5, 0.5, 0.5, 1.0]),
-              "index": np.array([[0, 0, 0], [1, 2, 3]], np.int32), "density": np.array([2.0, 5.0], np.float32),
-              "color": np.full((2, 3), 0.5, np.float32)}
+    arrays = {
+        "shape": np.array([4, 4, 4]),
+        "index_to_nerf": np.diag([0.5, 0.5, 0.5, 1.0]),
+        "index": np.array([[0, 0, 0], [1, 2, 3]], np.int32),
+        "density": np.array([2.0, 5.0], np.float32),
+        "color": np.full((2, 3), 0.5, np.float32),
+    }
     arrays.update(changes)
     folder.mkdir(exist_ok=True)
     np.savez(folder / name, **arrays)
@@ -1023,30 +1132,52 @@ def _npy_named_npz(folder):
 
 _NPZ_CASES = {
     "shape as text": (lambda d: _baked(d, "a.npz", shape=np.array(["4", "4", "4"])), "`shape` holds <U1, not integers"),
-    "a declared 32768^3 grid": (lambda d: _baked(d, "a.npz", shape=np.array([32768, 32768, 32768])),
-                                "each side must be from 1 to 2048"),
+    "a declared 32768^3 grid": (
+        lambda d: _baked(d, "a.npz", shape=np.array([32768, 32768, 32768])),
+        "each side must be from 1 to 2048",
+    ),
     "an index declaring 2 TiB": (_huge_declared_index, r"needs about .* GiB of memory"),
-    "NaN density": (lambda d: _baked(d, "a.npz", density=np.array([np.nan, 1], np.float32)),
-                    "`density` holds NaN or inf at 1 voxels (first: voxel 0)"),
+    "NaN density": (
+        lambda d: _baked(d, "a.npz", density=np.array([np.nan, 1], np.float32)),
+        "`density` holds NaN or inf at 1 voxels (first: voxel 0)",
+    ),
     "negative density": (lambda d: _baked(d, "a.npz", density=np.array([1, -4], np.float32)), "`density` is negative"),
-    "inf colour": (lambda d: _baked(d, "a.npz", color=np.array([[0, 0, 0], [0, np.inf, 0]], np.float32)),
-                   "`color` holds NaN or inf"),
-    "voxels OpenVDB cannot place": (lambda d: _baked(d, "a.npz", index_to_nerf=np.diag([1e-6, 1e-6, 1e-6, 1.0])),
-                                    "smaller than 2e-05"),
-    "an index outside the grid": (lambda d: _baked(d, "a.npz", index=np.array([[0, 0, 0], [4, 0, 0]], np.int32)),
-                                  "outside its grid"),
-    "the second file bad": (lambda d: (_baked(d, "a.npz"), _baked(d, "b.npz", density=np.array([np.inf, 1], np.float32)))[1],
-                            "b.npz: `density` holds NaN or inf"),
-    "Python objects": (lambda d: _baked(d, "a.npz", shape=np.array([{}, {}, {}], object)),
-                       "`shape` holds Python objects, not numbers"),
+    "inf colour": (
+        lambda d: _baked(d, "a.npz", color=np.array([[0, 0, 0], [0, np.inf, 0]], np.float32)),
+        "`color` holds NaN or inf",
+    ),
+    "voxels OpenVDB cannot place": (
+        lambda d: _baked(d, "a.npz", index_to_nerf=np.diag([1e-6, 1e-6, 1e-6, 1.0])),
+        "smaller than 2e-05",
+    ),
+    "an index outside the grid": (
+        lambda d: _baked(d, "a.npz", index=np.array([[0, 0, 0], [4, 0, 0]], np.int32)),
+        "outside its grid",
+    ),
+    "the second file bad": (
+        lambda d: (_baked(d, "a.npz"), _baked(d, "b.npz", density=np.array([np.inf, 1], np.float32)))[1],
+        "b.npz: `density` holds NaN or inf",
+    ),
+    "Python objects": (
+        lambda d: _baked(d, "a.npz", shape=np.array([{}, {}, {}], object)),
+        "`shape` holds Python objects, not numbers",
+    ),
     # kin found later: written without a word (the last value kept; overflow warnings), or a traceback
-    "a voxel listed twice": (lambda d: _baked(d, "a.npz", index=np.array([[1, 2, 3], [1, 2, 3]], np.int32)),
-                             "`index` lists voxel [1, 2, 3] more than once"),
-    "voxels 1e200 wide": (lambda d: _baked(d, "a.npz", index_to_nerf=np.diag([1e200, 1e200, 1e200, 1.0])),
-                          "places its voxels beyond 1e+09 NeRF units"),
+    "a voxel listed twice": (
+        lambda d: _baked(d, "a.npz", index=np.array([[1, 2, 3], [1, 2, 3]], np.int32)),
+        "`index` lists voxel [1, 2, 3] more than once",
+    ),
+    "voxels 1e200 wide": (
+        lambda d: _baked(d, "a.npz", index_to_nerf=np.diag([1e200, 1e200, 1e200, 1.0])),
+        "places its voxels beyond 1e+09 NeRF units",
+    ),
     "an .npy named .npz": (_npy_named_npz, "b.npz is not a baked volume: a single array, not an .npz archive"),
-    "a last row of 1e-12": (lambda d: _baked(d, "a.npz", index_to_nerf=np.array(
-        [[0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 0.5, 0], [0, 0, 1e-12, 1]])), "`index_to_nerf` is not a finite affine"),
+    "a last row of 1e-12": (
+        lambda d: _baked(
+            d, "a.npz", index_to_nerf=np.array([[0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 0.5, 0], [0, 0, 1e-12, 1]])
+        ),
+        "`index_to_nerf` is not a finite affine",
+    ),
 }
 
 
@@ -1089,7 +1220,9 @@ def test_vdb_from_npz_refuses_a_pipe_and_a_scale_that_overflows(tmp_path):
 
     os.mkfifo(tmp_path / "pipe.npz")
     proc = _vdb_tool(tmp_path / "pipe.npz", tmp_path / "out")
-    assert proc.returncode == 2 and "pipe.npz is not a file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and "pipe.npz is not a file" in proc.stderr and "Traceback" not in proc.stderr, (
+        proc.stderr
+    )
     _baked(tmp_path / "in", "a.npz", density=np.array([1e38, 5.0], np.float32))
     proc = _vdb_tool(tmp_path / "in", tmp_path / "out", "--scale", "1e-3")
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
@@ -1097,4 +1230,6 @@ def test_vdb_from_npz_refuses_a_pipe_and_a_scale_that_overflows(tmp_path):
     assert "a.npz: --scale 0.001: a scale of 0.001 world units per NeRF unit makes the density 1e+38" in errors[0]
     assert not (tmp_path / "out").exists()
     proc = _vdb_tool(tmp_path / "in" / "a.npz", tmp_path / "in" / "a.npz")  # the input as the output folder
-    assert proc.returncode == 2 and "error: OUT_DIR " in proc.stderr and "a.npz exists and is not a folder" in proc.stderr
+    assert (
+        proc.returncode == 2 and "error: OUT_DIR " in proc.stderr and "a.npz exists and is not a folder" in proc.stderr
+    )

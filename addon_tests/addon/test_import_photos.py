@@ -9,9 +9,8 @@ import re
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures.sfm_scene import write_corner_photos
+from PIL import Image
 
 
 @pytest.mark.slow

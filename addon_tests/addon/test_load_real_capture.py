@@ -6,14 +6,21 @@ import json
 
 import numpy as np
 import pytest
+from fixtures.blender_objects import engine_render, scene_with_nerf
+from fixtures.sphere_data import look_at
 from PIL import Image
 
-from fixtures.sphere_data import look_at
-
-from fixtures.blender_objects import engine_render, scene_with_nerf
-
-SMALL = dict(n_levels=4, n_features=2, log2_table_size=12, base_resolution=8, finest_resolution=64,
-             density_hidden=16, geo_feat_dim=7, color_hidden=16, occ_resolution=32)
+SMALL = dict(
+    n_levels=4,
+    n_features=2,
+    log2_table_size=12,
+    base_resolution=8,
+    finest_resolution=64,
+    density_hidden=16,
+    geo_feat_dim=7,
+    color_hidden=16,
+    occ_resolution=32,
+)
 
 
 def _unbounded_checkpoint(path, aabb, seed=0):

@@ -13,9 +13,8 @@ import math
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures.scenes import PROCEDURAL_RESOLUTION, PROCEDURAL_TEST_VIEWS, PROCEDURAL_VIEWS, run_tool
+from PIL import Image
 
 MARKER = (0.45, -0.3, 0.35)  # off the optical axis of every camera (they look at the origin)
 MARKER_RADIUS = 0.07
@@ -84,8 +83,10 @@ CAMERA_CASES = {
     # name: (tool options, check on the written intrinsics)
     "landscape": (dict(resolution=(64, 48)), None),
     "portrait_auto_fit": (dict(resolution=(40, 60), target=(0.2, -0.1, 0.15), layout="random"), None),
-    "vertical_fit_shift": (dict(resolution=(64, 40), sensor_fit="VERTICAL", sensor_height=20.0, shift=(0.07, -0.05)),
-                           None),
+    "vertical_fit_shift": (
+        dict(resolution=(64, 40), sensor_fit="VERTICAL", sensor_height=20.0, shift=(0.07, -0.05)),
+        None,
+    ),
     "pixel_aspect": (dict(resolution=(48, 48), pixel_aspect=1.5, lens=40.0, shift=(-0.04, 0.03)), None),
 }
 
@@ -96,8 +97,7 @@ def test_written_cameras_project_the_marker_where_blender_drew_it(blender, tmp_p
     from tools.make_dataset import make_dataset
 
     _marker_scene(blender)
-    make_dataset(tmp_path, blend=None, progress=None, count=6, radius=4.0, samples=64, seed=3,
-                 threads=2, **options)
+    make_dataset(tmp_path, blend=None, progress=None, count=6, radius=4.0, samples=64, seed=3, threads=2, **options)
     meta, errors = _check_marker(tmp_path)
     assert len(meta["frames"]) == 6
 
@@ -121,8 +121,18 @@ def test_camera_angle_x_alone_gives_the_same_rays(blender, tmp_path):
     from tools.make_dataset import make_dataset
 
     _marker_scene(blender)
-    make_dataset(tmp_path, blend=None, progress=None, count=4, radius=3.5, resolution=(56, 42), samples=64,
-                 seed=11, hemisphere=True, threads=2)
+    make_dataset(
+        tmp_path,
+        blend=None,
+        progress=None,
+        count=4,
+        radius=3.5,
+        resolution=(56, 42),
+        samples=64,
+        seed=11,
+        hemisphere=True,
+        threads=2,
+    )
     meta = json.loads((tmp_path / "transforms.json").read_text())
     focal = 0.5 * meta["w"] / math.tan(0.5 * meta["camera_angle_x"])
     assert meta["fl_x"] == pytest.approx(focal) and meta["fl_y"] == pytest.approx(focal)
@@ -142,11 +152,19 @@ def test_in_process_run_leaves_the_loaded_scene_as_it_was(blender, tmp_path):
     scene.render.engine = "BLENDER_WORKBENCH"
     scene.render.resolution_x, scene.render.resolution_y = 320, 240
     scene.render.film_transparent = False
-    before = ({ob.name for ob in blender.data.objects}, len(blender.data.cameras), scene.camera,
-              scene.view_settings.view_transform)
+    before = (
+        {ob.name for ob in blender.data.objects},
+        len(blender.data.cameras),
+        scene.camera,
+        scene.view_settings.view_transform,
+    )
     make_dataset(tmp_path, blend=None, progress=None, count=1, resolution=16, samples=1, threads=2)
-    after = ({ob.name for ob in blender.data.objects}, len(blender.data.cameras), scene.camera,
-             scene.view_settings.view_transform)
+    after = (
+        {ob.name for ob in blender.data.objects},
+        len(blender.data.cameras),
+        scene.camera,
+        scene.view_settings.view_transform,
+    )
     assert after == before and CAMERA_NAME not in blender.data.objects
     assert scene.render.engine == "BLENDER_WORKBENCH"
     assert (scene.render.resolution_x, scene.render.resolution_y, scene.render.film_transparent) == (320, 240, False)
@@ -191,7 +209,7 @@ def test_procedural_dataset_files_and_keys(procedural_dataset):
             alpha = np.asarray(image)[..., 3]
             # The cameras look at the origin, which is inside the arm: the centre is opaque object.
             c = PROCEDURAL_RESOLUTION // 2
-            assert alpha[c - 1:c + 1, c - 1:c + 1].min() == 255
+            assert alpha[c - 1 : c + 1, c - 1 : c + 1].min() == 255
             assert alpha[0, 0] == 0 and (alpha == 0).mean() > 0.3  # transparent background
             assert ((alpha == 0) | (alpha == 255)).mean() > 0.85  # hard coverage except at silhouettes
             m = np.array(frame["transform_matrix"])
@@ -274,26 +292,36 @@ def test_a_scene_without_objects_is_refused(tmp_path):
     import sys
 
     empty = tmp_path / "empty.blend"
-    subprocess.run([sys.executable, "-c", "import bpy; bpy.ops.wm.read_factory_settings(use_empty=True); "
-                    f"bpy.ops.wm.save_as_mainfile(filepath={str(empty)!r})"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import bpy; bpy.ops.wm.read_factory_settings(use_empty=True); "
+            f"bpy.ops.wm.save_as_mainfile(filepath={str(empty)!r})",
+        ],
+        check=True,
+        capture_output=True,
+    )
     result = run_tool("make_dataset.py", "--blend", empty, "--out", tmp_path / "out", "--count", 2, check=False)
     line = _error_line(result)
     assert "no objects to render" in line and str(empty) in line
     assert not (tmp_path / "out" / "transforms.json").exists()
 
 
-@pytest.mark.parametrize("args, fault", [
-    (["--count", "0"], "--count"),
-    (["--count", "-3"], "--count"),
-    (["--resolution", "0", "32"], "--resolution"),
-    (["--resolution", "32", "32", "32"], "--resolution"),
-    (["--radius", "0"], "--radius"),
-    (["--samples", "0"], "--samples"),
-    (["--test-count", "-1"], "--test-count"),
-])
+@pytest.mark.parametrize(
+    "args, fault",
+    [
+        (["--count", "0"], "--count"),
+        (["--count", "-3"], "--count"),
+        (["--resolution", "0", "32"], "--resolution"),
+        (["--resolution", "32", "32", "32"], "--resolution"),
+        (["--radius", "0"], "--radius"),
+        (["--samples", "0"], "--samples"),
+        (["--test-count", "-1"], "--test-count"),
+    ],
+)
 def test_bad_numbers_are_named(default_scene_blend, tmp_path, args, fault):
-    result = run_tool("make_dataset.py", "--blend", default_scene_blend, "--out", tmp_path / "out", *args,
-                      check=False)
+    result = run_tool("make_dataset.py", "--blend", default_scene_blend, "--out", tmp_path / "out", *args, check=False)
     line = _error_line(result)
     assert fault in line
     assert not (tmp_path / "out").exists()

@@ -24,10 +24,22 @@ def _corners(bounds):
 def test_opaque_views_inside_the_room_show_the_room_behind_the_object(blender, tmp_path):
     info = make_room_scene.build(blender)
     make_room_scene.check(blender)
-    assert json.loads(blender.context.scene["nerf_room"])["room_bounds"] == [list(c) for c in make_room_scene.ROOM_BOUNDS]
+    assert json.loads(blender.context.scene["nerf_room"])["room_bounds"] == [
+        list(c) for c in make_room_scene.ROOM_BOUNDS
+    ]
     out = tmp_path / "room"
-    make_dataset(out, progress=None, opaque=True, count=2, resolution=24, samples=4, radius=2.7,
-                 min_elevation=-15.0, lens=35.0, aabb=make_room_scene.WORLD_BOX)
+    make_dataset(
+        out,
+        progress=None,
+        opaque=True,
+        count=2,
+        resolution=24,
+        samples=4,
+        radius=2.7,
+        min_elevation=-15.0,
+        lens=35.0,
+        aabb=make_room_scene.WORLD_BOX,
+    )
     meta = json.loads((out / "transforms.json").read_text())
     assert meta["aabb"] == [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]
     assert meta["generator"]["opaque"] is True and meta["generator"]["alpha"].startswith("none")
@@ -66,11 +78,14 @@ def test_min_elevation_bounds_the_cameras():
     assert np.allclose(hemi, camera_positions(50, 1.0, seed=1, min_elevation=0.0))
 
 
-@pytest.mark.parametrize("options, fault", [
-    ({"hemisphere": True, "min_elevation": -10.0}, "--min-elevation"),
-    ({"min_elevation": 90.0}, "--min-elevation"),
-    ({"aabb": ((1.0, -1.0, -1.0), (-1.0, 1.0, 1.0))}, "--aabb"),
-])
+@pytest.mark.parametrize(
+    "options, fault",
+    [
+        ({"hemisphere": True, "min_elevation": -10.0}, "--min-elevation"),
+        ({"min_elevation": 90.0}, "--min-elevation"),
+        ({"aabb": ((1.0, -1.0, -1.0), (-1.0, 1.0, 1.0))}, "--aabb"),
+    ],
+)
 def test_bad_camera_options_are_named(tmp_path, options, fault):
     with pytest.raises(DatasetError, match=fault):
         make_dataset(tmp_path / "x", progress=None, **options)

@@ -12,10 +12,9 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from fixtures import REPO
-from fixtures.sphere_data import look_at
 from fixtures.blender_objects import render_exr_passes
+from fixtures.sphere_data import look_at
 
 WIDTH, HEIGHT = 64, 40
 
@@ -128,19 +127,28 @@ def test_progress_spans_every_nerf_and_cancel_stops_between_them(addon, sphere_n
     _two_nerfs(bpy, ckpt, (-1.8, 0.0, 0.0), (1.8, 0.0, 0.0), eye=(0.0, -7.0, 0.0))
     depsgraph = bpy.context.evaluated_depsgraph_get()
     fractions, statuses = [], []
-    frame = frame_render.render_frame(depsgraph, WIDTH, HEIGHT, on_progress=lambda f, _m: fractions.append(f),
-                                      on_status=statuses.append)
+    frame = frame_render.render_frame(
+        depsgraph, WIDTH, HEIGHT, on_progress=lambda f, _m: fractions.append(f), on_status=statuses.append
+    )
     assert not frame.error and not frame.cancelled
     # The first NeRF reports over [0, 0.5], the second over [0.5, 1].
     assert fractions == sorted(fractions) and min(fractions) <= 0.5 < max(fractions) == 1.0
-    assert [s.split(",")[0] for s in statuses] == ["NeRF Deform: rendering Far (1 of 2)", "NeRF Deform: rendering Near (2 of 2)"]
+    assert [s.split(",")[0] for s in statuses] == [
+        "NeRF Deform: rendering Far (1 of 2)",
+        "NeRF Deform: rendering Near (2 of 2)",
+    ]
 
     # Esc once the first NeRF has rendered: the second is never sent.
     client = jobs.worker(bpy.context)
     renders_before = sum(op == "render" for op, _ in client.sent)
     first_done = []
-    frame = frame_render.render_frame(depsgraph, WIDTH, HEIGHT, on_progress=lambda f, _m: first_done.append(f >= 0.5),
-                                      should_cancel=lambda: any(first_done))
+    frame = frame_render.render_frame(
+        depsgraph,
+        WIDTH,
+        HEIGHT,
+        on_progress=lambda f, _m: first_done.append(f >= 0.5),
+        should_cancel=lambda: any(first_done),
+    )
     assert frame.cancelled and not frame.error
     assert sum(op == "render" for op, _ in client.sent) - renders_before == 1
 
@@ -162,14 +170,18 @@ def test_a_saved_scene_of_two_nerfs_renders_the_same_in_a_fresh_blender(addon, s
     bpy.context.scene.render.filepath = {str(tmp_path / "after.exr")!r}
     assert bpy.ops.render.render(write_still=True) == {{"FINISHED"}}
     """
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(script)], cwd=REPO, capture_output=True, text=True,
-                          timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script)], cwd=REPO, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     import OpenEXR
 
     with OpenEXR.File(str(tmp_path / "after.exr"), separate_channels=True) as exr:
-        channels = {name.split(".")[-2] + "." + name.split(".")[-1]: c.pixels for part in exr.parts
-                    for name, c in part.channels.items()}
+        channels = {
+            name.split(".")[-2] + "." + name.split(".")[-1]: c.pixels
+            for part in exr.parts
+            for name, c in part.channels.items()
+        }
     after_rgba = np.stack([channels[f"Combined.{k}"] for k in "RGBA"], -1)
     assert np.allclose(after_rgba, before["Combined"], rtol=1e-5, atol=1e-5)  # float32 rounding between processes
     assert np.allclose(channels["Depth.Z"], before["Depth"], rtol=1e-5, atol=1e-5)

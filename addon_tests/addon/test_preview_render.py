@@ -5,9 +5,8 @@ import time
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures.blender_objects import engine_render, scene_with_nerf
+from PIL import Image
 
 
 def _pump(job, seconds=120):

@@ -7,12 +7,13 @@ import os
 import threading
 
 import numpy as np
+from fixtures.blender_objects import scene_with_nerf
 from PIL import Image
 
-from fixtures.blender_objects import scene_with_nerf
 
-
-def test_opening_a_file_in_background_starts_nothing_and_prewarm_readies_the_worker_for_f12(addon, sphere_nerf, tmp_path):
+def test_opening_a_file_in_background_starts_nothing_and_prewarm_readies_the_worker_for_f12(
+    addon, sphere_nerf, tmp_path
+):
     bpy = addon
     from blender_nerf_deform.addon.render import prewarm
     from blender_nerf_deform.addon.worker import jobs
@@ -47,7 +48,7 @@ def test_opening_a_file_in_background_starts_nothing_and_prewarm_readies_the_wor
     bpy.context.scene.render.filepath = str(tmp_path / "f12.png")
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
     ops = [op for op, _ in client.sent]
-    assert ops[ops.index("warm"):] == ["warm", "info", "render", "render"]  # the frame of each NeRF shown
+    assert ops[ops.index("warm") :] == ["warm", "info", "render", "render"]  # the frame of each NeRF shown
     assert client.call("info")[0]["pid"] == pid  # rendered on the worker the file's opening started
     assert client.drain() >= 1  # warm's answer (a result: no error was reported)
     alpha = np.asarray(Image.open(tmp_path / "f12.png").convert("RGBA"))[..., 3]

@@ -4,11 +4,10 @@ import json
 
 import numpy as np
 import pytest
+from fixtures.blender_objects import engine_render, render_exr_passes, scene_with_nerf
 from PIL import Image
 
 from blender_nerf_deform.engine.nerf.substeps import FINAL_SUBSTEPS
-
-from fixtures.blender_objects import engine_render, render_exr_passes, scene_with_nerf
 
 
 @pytest.mark.slow
@@ -65,13 +64,21 @@ def test_depth_is_planar_world_distance_and_alpha_is_coverage(addon, sphere_nerf
     centres = np.arange(size) + 0.5
     jj, ii = np.meshgrid(centres, centres, indexing="ij")
     ray_length = np.sqrt(((ii - size / 2) / f) ** 2 + ((jj - size / 2) / f) ** 2 + 1.0)
-    camera = {"width": size, "height": size, "fx": f, "fy": f, "cx": size / 2, "cy": size / 2,
-              "camera_to_world": frame["transform_matrix"]}
+    camera = {
+        "width": size,
+        "height": size,
+        "fx": f,
+        "fy": f,
+        "cx": size / 2,
+        "cy": size / 2,
+        "camera_to_world": frame["transform_matrix"],
+    }
     # F12 marches the NeRF's Render Substeps (default: the engine's final-frame substeps); the worker's
     # render op one unless asked.
     assert nerf.nerf_deform.render_substeps == FINAL_SUBSTEPS
-    _, out = jobs.worker(bpy.context).call("render", {"checkpoint": str(ckpt), "camera": camera,
-                                                      "substeps": FINAL_SUBSTEPS})
+    _, out = jobs.worker(bpy.context).call(
+        "render", {"checkpoint": str(ckpt), "camera": camera, "substeps": FINAL_SUBSTEPS}
+    )
     assert np.allclose(plain["Depth"][hit], (out["depth"] / ray_length)[hit], rtol=1e-4)
 
     # The NeRF scaled 2x (and moved, turned) with the camera keeping its view: same picture, twice the depth.

@@ -12,7 +12,6 @@ project folder moved, and renders a frame with the NeRF Deform engine: it must f
 import shutil
 
 import pytest
-
 from fixtures.processes import SCENE_HELPERS, assert_clean, run_blender
 
 _AUTHOR = """
@@ -56,8 +55,11 @@ def test_saved_checkpoint_paths_render_on_a_farm_after_the_project_folder_moved(
         (tmp_path / folder if folder in ("elsewhere", "farm_cwd", "frames") else project / folder).mkdir(parents=True)
 
     out = assert_clean(run_blender(SCENE_HELPERS + _AUTHOR.format(project=str(project)), cwd=tmp_path / "elsewhere"))
-    lines = dict(line.split(" ", 1) for line in out.splitlines() if line.split(" ", 1)[0] in
-                 ("UNSAVED", "SHOT", "V2", "COPIED", "RESAVED"))
+    lines = dict(
+        line.split(" ", 1)
+        for line in out.splitlines()
+        if line.split(" ", 1)[0] in ("UNSAVED", "SHOT", "V2", "COPIED", "RESAVED")
+    )
     assert lines["UNSAVED"] == str(project / "run" / "nerf.ckpt")  # no file yet: nothing to be relative to
     assert lines["SHOT"] == "//run/nerf.ckpt"
     assert lines["V2"] == "//../run/nerf.ckpt"
@@ -66,8 +68,11 @@ def test_saved_checkpoint_paths_render_on_a_farm_after_the_project_folder_moved(
 
     moved = tmp_path / "moved" / "project"
     shutil.move(project, moved)
-    out = assert_clean(run_blender(SCENE_HELPERS + _FARM.format(project=str(moved), out=str(tmp_path / "frames")),
-                                   cwd=tmp_path / "farm_cwd"))
+    out = assert_clean(
+        run_blender(
+            SCENE_HELPERS + _FARM.format(project=str(moved), out=str(tmp_path / "frames")), cwd=tmp_path / "farm_cwd"
+        )
+    )
     rendered = [line.split()[1:] for line in out.splitlines() if line.startswith("RENDERED")]
     assert {name: path for name, path, _alpha in rendered} == {
         "shot.blend": "//run/nerf.ckpt",
@@ -89,7 +94,10 @@ def test_rebased_path_resolves_against_the_old_file_and_relates_to_the_new_one(a
     # Absolute paths kept where the artist turned off Preferences > File Paths > Default Relative Paths.
     absolute = str(tmp_path / "mount" / "nerf.ckpt")
     assert rebased_path(absolute, str(a / "shot.blend"), str(b / "v2.blend"), make_relative=False) == absolute
-    assert rebased_path("//run/nerf.ckpt", str(a / "shot.blend"), str(b / "v2.blend"), make_relative=False) == "//../run/nerf.ckpt"
+    assert (
+        rebased_path("//run/nerf.ckpt", str(a / "shot.blend"), str(b / "v2.blend"), make_relative=False)
+        == "//../run/nerf.ckpt"
+    )
 
 
 def test_save_copy_and_a_failed_save_leave_the_open_files_paths_alone(addon, sphere_nerf, tmp_path):

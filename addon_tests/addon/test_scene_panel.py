@@ -1,7 +1,6 @@
 """The "NeRF Objects" sub-panel's facts (scene_panel.nerf_status): visibility, regions, mesh, cage, staleness."""
 
 import pytest
-
 from fixtures.blender_objects import nerf_with_sphere_surface
 
 

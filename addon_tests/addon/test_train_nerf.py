@@ -11,16 +11,19 @@ import time
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures import REPO
 from fixtures.sphere_data import look_at, write_sphere_dataset
 from fixtures.turntable_data import write_turntable
+from PIL import Image
 
 
 def _eval_psnr(ckpt, data) -> float:
-    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "eval", "--nerf", str(ckpt), "--data",
-                           str(data)], cwd=REPO, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", "eval", "--nerf", str(ckpt), "--data", str(data)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return float(re.findall(r"([0-9.]+) dB", proc.stdout + proc.stderr)[-1])
 
@@ -41,8 +44,9 @@ def test_train_nerf_shows_progress_and_ends_with_a_nerf_object(addon, tmp_path, 
     bpy = addon
     data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)
     assert not [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
-    assert bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(tmp_path / "run"), steps=150, seconds=0,
-                                          device="cpu") == {"FINISHED"}
+    assert bpy.ops.nerf_deform.train_nerf(
+        data=str(data), run_folder=str(tmp_path / "run"), steps=150, seconds=0, device="cpu"
+    ) == {"FINISHED"}
     printed = capfd.readouterr().out
     progress = re.findall(r"Train NeRF: +([0-9.]+)% step (\d+), PSNR", printed)
     assert len(progress) >= 2, printed[-2000:]  # several reports, advancing
@@ -69,10 +73,13 @@ def test_cancel_keeps_a_loadable_checkpoint_and_resume_continues_it(addon, tmp_p
     run = tmp_path / "run"
     client = jobs.worker(bpy.context)
     state = {"progress": [], "done": None}
-    job = client.submit("train", {"data": str(data), "out": str(run), "steps": 100000, "device": "cpu"},
-                        on_progress=lambda f, msg: state["progress"].append(msg),
-                        on_done=lambda result, arrays: state.update(done=result),
-                        on_error=lambda error: state.update(done=error))
+    job = client.submit(
+        "train",
+        {"data": str(data), "out": str(run), "steps": 100000, "device": "cpu"},
+        on_progress=lambda f, msg: state["progress"].append(msg),
+        on_done=lambda result, arrays: state.update(done=result),
+        on_error=lambda error: state.update(done=error),
+    )
     deadline = time.time() + 300
     while not state["progress"] and time.time() < deadline:
         client.drain()
@@ -87,8 +94,9 @@ def test_cancel_keeps_a_loadable_checkpoint_and_resume_continues_it(addon, tmp_p
     steps_done = result["steps"]
     assert 0 < steps_done < 100000 and (run / "nerf.ckpt").is_file()
     # Loadable, and Resume continues from it: the step count goes on.
-    assert bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(run), steps=steps_done + 40, seconds=0,
-                                          resume=True, device="cpu") == {"FINISHED"}
+    assert bpy.ops.nerf_deform.train_nerf(
+        data=str(data), run_folder=str(run), steps=steps_done + 40, seconds=0, resume=True, device="cpu"
+    ) == {"FINISHED"}
     summary = json.loads((run / "train.json").read_text())
     assert summary["steps"] == steps_done + 40
 
@@ -101,21 +109,23 @@ def test_train_nerf_bad_input_is_reported(addon, tmp_path):
         bpy.ops.nerf_deform.train_nerf(data=str(tmp_path), seconds=0, steps=0)
     (tmp_path / "junk").mkdir()
     with pytest.raises(RuntimeError, match="junk"):  # the engine names what it could not read
-        bpy.ops.nerf_deform.train_nerf(data=str(tmp_path / "junk"), run_folder=str(tmp_path / "run"), steps=5, seconds=0)
+        bpy.ops.nerf_deform.train_nerf(
+            data=str(tmp_path / "junk"), run_folder=str(tmp_path / "run"), steps=5, seconds=0
+        )
     assert not (tmp_path / "run").exists()
     assert not [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
 
 
 @pytest.mark.slow
-def test_an_object_cut_out_by_its_masks_trains_loads_extracts_and_renders_transparent_around_it(addon, tmp_path,
-                                                                                                capfd):
+def test_an_object_cut_out_by_its_masks_trains_loads_extracts_and_renders_transparent_around_it(addon, tmp_path, capfd):
     """A turntable capture with object masks, from Blender: Train NeRF reads the masks as the object alone and
     says so, Load NeRF says what it loaded, Extract Mesh needs no edit region (nothing but the object is
     there) and F12 renders the object over transparency."""
     bpy = addon
     data = write_turntable(tmp_path / "turntable", n_views=16)
-    assert bpy.ops.nerf_deform.train_nerf(data=str(data), run_folder=str(tmp_path / "run"), steps=200, seconds=0,
-                                          device="cpu") == {"FINISHED"}
+    assert bpy.ops.nerf_deform.train_nerf(
+        data=str(data), run_folder=str(tmp_path / "run"), steps=200, seconds=0, device="cpu"
+    ) == {"FINISHED"}
     printed = capfd.readouterr().out
     assert "masks read as the object alone (transparent around it): the masks keep a shape" in printed, printed[-2000:]
     assert "bounded, an object cut out by its masks: transparent around it" in printed, printed[-2000:]

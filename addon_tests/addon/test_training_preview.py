@@ -9,7 +9,6 @@ import time
 
 import numpy as np
 import pytest
-
 from fixtures.sphere_data import write_sphere_dataset
 
 
@@ -31,18 +30,21 @@ def _preview_report(bpy, **kwargs) -> str:
 @pytest.mark.slow
 def test_a_preview_asked_while_training_comes_back_before_it_ends_then_renders_the_checkpoint(addon, tmp_path):
     bpy = addon
-    from blender_nerf_deform.addon.worker import jobs
     from blender_nerf_deform.addon.train.training_preview import IMAGE_NAME
+    from blender_nerf_deform.addon.worker import jobs
 
     assert not bpy.ops.nerf_deform.preview_training.poll()  # nothing trains, the panel's run has no checkpoint
     data = write_sphere_dataset(tmp_path / "data", n_views=12, size=24)
     run = tmp_path / "run"
     client = jobs.worker(bpy.context)
     state = {"progress": [], "done": None}
-    job = client.submit("train", {"data": str(data), "out": str(run), "steps": 100000, "device": "cpu"},
-                        on_progress=lambda f, msg: state["progress"].append(msg),
-                        on_done=lambda result, arrays: state.update(done=result),
-                        on_error=lambda error: state.update(done=error))
+    job = client.submit(
+        "train",
+        {"data": str(data), "out": str(run), "steps": 100000, "device": "cpu"},
+        on_progress=lambda f, msg: state["progress"].append(msg),
+        on_done=lambda result, arrays: state.update(done=result),
+        on_error=lambda error: state.update(done=error),
+    )
     deadline = time.time() + 300
     try:
 

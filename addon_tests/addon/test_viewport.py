@@ -15,7 +15,6 @@ import time
 
 import numpy as np
 import pytest
-
 from fixtures.blender_objects import scene_with_nerf
 
 SIZE = 32
@@ -27,8 +26,9 @@ def _camera_view(bpy, camera, width, height):
 
     scene = bpy.context.scene
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    window = camera.calc_matrix_camera(depsgraph, x=width, y=height, scale_x=scene.render.pixel_aspect_x,
-                                       scale_y=scene.render.pixel_aspect_y)
+    window = camera.calc_matrix_camera(
+        depsgraph, x=width, y=height, scale_x=scene.render.pixel_aspect_x, scale_y=scene.render.pixel_aspect_y
+    )
     return pinhole_from_view(camera.matrix_world.inverted(), window, width, height)
 
 
@@ -53,8 +53,8 @@ class _Redraws:
 
 
 def _viewport(bpy):
-    from blender_nerf_deform.addon.worker import jobs
     from blender_nerf_deform.addon.render.viewport import ViewportRender
+    from blender_nerf_deform.addon.worker import jobs
 
     redraws = _Redraws()
     viewport = redraws.viewport = ViewportRender(redraws)
@@ -70,8 +70,11 @@ def test_the_camera_view_is_framed_as_f12(addon):
     scene.collection.objects.link(camera)
     scene.camera = camera
     camera.location, camera.rotation_euler = (1.0, -4.0, 2.0), (1.1, 0.1, 0.3)
-    for fit, shift, (width, height) in (("AUTO", (0.0, 0.0), (64, 40)), ("VERTICAL", (0.1, -0.05), (30, 50)),
-                                        ("HORIZONTAL", (-0.2, 0.15), (48, 48))):
+    for fit, shift, (width, height) in (
+        ("AUTO", (0.0, 0.0), (64, 40)),
+        ("VERTICAL", (0.1, -0.05), (30, 50)),
+        ("HORIZONTAL", (-0.2, 0.15), (48, 48)),
+    ):
         camera.data.sensor_fit, (camera.data.shift_x, camera.data.shift_y) = fit, shift
         camera.data.lens = 35.0
         scene.render.resolution_x, scene.render.resolution_y = width, height

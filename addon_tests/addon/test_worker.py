@@ -7,10 +7,9 @@ import sys
 
 import numpy as np
 import pytest
+from fixtures import REPO
 
 from blender_nerf_deform.engine.service.protocol import ProtocolError, read_message, write_message
-
-from fixtures import REPO
 
 
 def test_protocol_round_trip_keeps_arrays_exact():
@@ -150,14 +149,26 @@ def test_render_cancelled_midway_stops_at_the_next_chunk_and_the_worker_lives_on
 
     def request(size):
         f = 0.5 * size / np.tan(0.45)
-        camera = {"width": size, "height": size, "fx": f, "fy": f, "cx": size / 2, "cy": size / 2, "camera_to_world": c2w}
+        camera = {
+            "width": size,
+            "height": size,
+            "fx": f,
+            "fy": f,
+            "cx": size / 2,
+            "cy": size / 2,
+            "camera_to_world": c2w,
+        }
         return {"checkpoint": str(ckpt), "camera": camera}
 
     params = request(320)  # 102400 rays: many chunks, so there is a "midway"
     progress = []
     with pytest.raises(WorkerError) as info:
-        worker.call("render", params, on_progress=lambda frac, msg: progress.append(frac),
-                    should_cancel=lambda: len(progress) > 0)
+        worker.call(
+            "render",
+            params,
+            on_progress=lambda frac, msg: progress.append(frac),
+            should_cancel=lambda: len(progress) > 0,
+        )
     assert info.value.kind == "cancelled"
     assert progress and max(progress) < 1.0
     result, arrays = worker.call("render", request(24))  # the same worker renders the next request in full
@@ -179,13 +190,16 @@ def _box_session(loads):
         def load():
             loads.append(slot)
             return arrays
+
         return load
 
     cage = {"vertices": V, "tets": T}
     embedding = {"tet_ids": emb.tet_ids, "weights": emb.weights}
-    shared = {"cage": (content_key(V, T), loader("cage", cage)),
-              "embedding": (content_key(emb.tet_ids, emb.weights), loader("embedding", embedding)),
-              "regions": (content_key(*regions.values()), loader("regions", regions))}
+    shared = {
+        "cage": (content_key(V, T), loader("cage", cage)),
+        "embedding": (content_key(emb.tet_ids, emb.weights), loader("embedding", embedding)),
+        "regions": (content_key(*regions.values()), loader("regions", regions)),
+    }
     return V, top, shared
 
 
@@ -211,7 +225,9 @@ def test_shared_content_travels_once_and_again_after_a_restart(worker):
     result, out2 = worker.call("solve", {**pose, "transforms": [_lift(0.5)]}, shared=shared)
     assert loads == [] and "precompute_s" not in result  # nothing re-sent, factorization reused
     assert worker.sent[-1][1] < 2000 < first_bytes
-    assert np.allclose(out2["deformed_vertices"][top, 2], V[top, 2] + 0.5, atol=1e-3 * np.linalg.norm(np.ptp(V, axis=0)))
+    assert np.allclose(
+        out2["deformed_vertices"][top, 2], V[top, 2] + 0.5, atol=1e-3 * np.linalg.norm(np.ptp(V, axis=0))
+    )
     # The preview's answer: the embedded surface itself (here: the cage's own vertices).
     _result, surf = worker.call("solve", {**pose, "answer": "surface"}, shared=shared)
     assert surf["surface"].dtype == np.float32 and np.allclose(surf["surface"], out["deformed_vertices"], atol=1e-5)
@@ -234,8 +250,13 @@ def test_a_worker_that_dropped_shared_content_gets_it_again(worker):
     assert [op for op, _n in worker.sent] == ["solve", "solve"]
     async_done = []
     worker._given.add(("regions", "not-sent"))
-    worker.submit("solve", pose, shared={**shared, "regions": ("not-sent", shared["regions"][1])},
-                  on_done=lambda r, a: async_done.append(a), on_error=lambda e: async_done.append(e))
+    worker.submit(
+        "solve",
+        pose,
+        shared={**shared, "regions": ("not-sent", shared["regions"][1])},
+        on_done=lambda r, a: async_done.append(a),
+        on_error=lambda e: async_done.append(e),
+    )
     import time
 
     deadline = time.time() + 60

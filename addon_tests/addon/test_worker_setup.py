@@ -27,10 +27,12 @@ pytestmark = pytest.mark.slow
 def enabled(blender, extension_zip, tmp_path):
     """The extension installed from its zip and enabled; yields (bpy, its preferences, its worker_setup module)."""
     bpy = blender
-    bpy.context.preferences.extensions.repos.new(name="NeRF Deform Setup Test", module=REPO_MODULE,
-                                                 custom_directory=str(tmp_path / "repo"), source="USER")
-    assert bpy.ops.extensions.package_install_files(filepath=str(extension_zip), repo=REPO_MODULE,
-                                                    enable_on_install=True) == {"FINISHED"}
+    bpy.context.preferences.extensions.repos.new(
+        name="NeRF Deform Setup Test", module=REPO_MODULE, custom_directory=str(tmp_path / "repo"), source="USER"
+    )
+    assert bpy.ops.extensions.package_install_files(
+        filepath=str(extension_zip), repo=REPO_MODULE, enable_on_install=True
+    ) == {"FINISHED"}
     prefs = bpy.context.preferences.addons[EXT_MODULE].preferences
     yield bpy, prefs, sys.modules[f"{EXT_MODULE}.addon.worker.setup"]
     bpy.ops.preferences.addon_disable(module=EXT_MODULE)
@@ -50,8 +52,16 @@ def _ensure_env(worker_setup, folder: Path) -> Path:
 
 
 def _imports_torch(python: Path) -> str:
-    proc = subprocess.run([str(python), "-c", "import torch, scipy, skimage, trimesh, igl, pytetwild, numba, pycolmap; "
-                                              "print(torch.__version__)"], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            str(python),
+            "-c",
+            "import torch, scipy, skimage, trimesh, igl, pytetwild, numba, pycolmap; print(torch.__version__)",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     return proc.stdout.strip()
 

@@ -10,7 +10,6 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
-
 from fixtures import REPO
 
 BENCH = REPO / "tools" / "bench"
@@ -24,8 +23,24 @@ TINY_RUNS = (
     ("geometry_extract.py", ("--resolution", "48"), "cage: total"),
     ("nerf_field.py", ("--n", "4096", "--repeat", "1"), "ours-torch"),
     ("nerf_train.py", ("--data", str(LEGO), "--seconds", "3", "--at", "3", "--downscale", "8"), '"psnr"'),
-    ("hash_kernels.py", ("--old-tree", str(REPO), "--data", str(LEGO), "--downscale", "8", "--warm", "2", "--steps", "1",
-                         "--repeats", "1"), "same values: True"),
+    (
+        "hash_kernels.py",
+        (
+            "--old-tree",
+            str(REPO),
+            "--data",
+            str(LEGO),
+            "--downscale",
+            "8",
+            "--warm",
+            "2",
+            "--steps",
+            "1",
+            "--repeats",
+            "1",
+        ),
+        "same values: True",
+    ),
 )
 
 

@@ -75,7 +75,9 @@ def test_degenerate_and_inverted_tets_give_finite_maps_and_are_counted(scene):
     deformed[d] = (deformed[a] + deformed[b] + deformed[c]) / 3  # flatten one tet (degenerate)
     bend = CageBend(model, rest, tets).set_deformed(deformed)
     assert bend.inversion.n_degenerate >= 1
-    assert torch.isfinite(bend.linear).all() and torch.isfinite(bend.offset).all() and torch.isfinite(bend.rotation).all()
+    assert (
+        torch.isfinite(bend.linear).all() and torch.isfinite(bend.offset).all() and torch.isfinite(bend.rotation).all()
+    )
     pts = torch.as_tensor(np.random.default_rng(0).uniform(-1.5, 1.5, (5000, 3)), dtype=torch.float32)
     p, d_out, keep, *_ = bend.sample_transform(pts, torch.nn.functional.normalize(pts, dim=1))
     assert torch.isfinite(p).all() and torch.isfinite(d_out).all()
@@ -87,8 +89,9 @@ def _cli(*args):
 
     from fixtures import REPO
 
-    return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO, capture_output=True, text=True
+    )
 
 
 @pytest.mark.slow
@@ -117,6 +120,17 @@ def test_cli_render_through_a_cage(sphere_nerf, tmp_path):
     assert _psnr(render("--cage", tmp_path / "cage.npz", "--deformed", tmp_path / "lifted.npy"), plain) < 30
 
     np.save(tmp_path / "wrong.npy", rest[:5])
-    proc = _cli("render", "--nerf", ckpt, "--cameras", tmp_path / "cams.json", "--out", tmp_path / "bad",
-                "--cage", tmp_path / "cage.npz", "--deformed", tmp_path / "wrong.npy")
+    proc = _cli(
+        "render",
+        "--nerf",
+        ckpt,
+        "--cameras",
+        tmp_path / "cams.json",
+        "--out",
+        tmp_path / "bad",
+        "--cage",
+        tmp_path / "cage.npz",
+        "--deformed",
+        tmp_path / "wrong.npy",
+    )
     assert proc.returncode == 2 and "wrong.npy: deformed vertices must be a finite (64, 3) array" in proc.stderr

@@ -7,10 +7,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from fixtures.sphere_data import RADIUS, look_at
 
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.nerf.substeps import FINAL_SUBSTEPS
-from fixtures.sphere_data import RADIUS, look_at
 
 
 def _psnr(a, b):
@@ -140,8 +140,10 @@ def test_inverted_tets_give_no_nan_and_no_hole(model):
     window = (slice(r - 3, r + 4), slice(c - 3, c + 4))
     assert plain[window][..., 3].min() > 0.95
     assert folded[window][..., 3].min() > 0.95
-    pts = torch.as_tensor(np.random.default_rng(0).uniform(deformed[star].min((0, 1)), deformed[star].max((0, 1)), (20000, 3)),
-                          dtype=torch.float32)
+    pts = torch.as_tensor(
+        np.random.default_rng(0).uniform(deformed[star].min((0, 1)), deformed[star].max((0, 1)), (20000, 3)),
+        dtype=torch.float32,
+    )
     p, d, _keep, *_ = bend.sample_transform(pts, torch.nn.functional.normalize(pts, dim=1))
     assert torch.isfinite(p).all() and torch.isfinite(d).all()
     assert (bend.deformed.locate(pts) >= 0).all()  # inside the box cage: no sample falls through the fold
@@ -181,8 +183,9 @@ def _cli(*args):
 
     from fixtures import REPO
 
-    return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO, capture_output=True, text=True
+    )
 
 
 @pytest.mark.slow
@@ -196,9 +199,12 @@ def test_cli_renders_an_animation_from_a_folder_of_poses(sphere_nerf, model, tmp
     ckpt, data = sphere_nerf
     meta = json.loads((data / "transforms.json").read_text())
     # One still camera, three frames (the file names are the frames' names), a cap lifted a little more each frame.
-    frames = [{"file_path": f"shot/f{k:02d}", "transform_matrix": meta["frames"][4]["transform_matrix"]} for k in range(3)]
-    (tmp_path / "cams.json").write_text(json.dumps({"camera_angle_x": meta["camera_angle_x"], "w": 32, "h": 32,
-                                                    "frames": frames}))
+    frames = [
+        {"file_path": f"shot/f{k:02d}", "transform_matrix": meta["frames"][4]["transform_matrix"]} for k in range(3)
+    ]
+    (tmp_path / "cams.json").write_text(
+        json.dumps({"camera_angle_x": meta["camera_angle_x"], "w": 32, "h": 32, "frames": frames})
+    )
     rest, tets = box_cage((2, 2, 2), lo=(-0.9, -0.9, 0.3), hi=(0.9, 0.9, 0.9))
     save_cage(tmp_path / "cage.npz", rest, tets)
     poses = tmp_path / "poses"
@@ -207,8 +213,19 @@ def test_cli_renders_an_animation_from_a_folder_of_poses(sphere_nerf, model, tmp
     # Natural order: pose_2 before pose_10, whatever the plain string order says.
     for name, lift in zip(("pose_1.npy", "pose_2.npy", "pose_10.npy"), lifts):
         np.save(poses / name, rest + [0.0, 0.0, lift])
-    proc = _cli("render", "--nerf", ckpt, "--cameras", tmp_path / "cams.json", "--out", tmp_path / "out",
-                "--cage", tmp_path / "cage.npz", "--deformed", poses)
+    proc = _cli(
+        "render",
+        "--nerf",
+        ckpt,
+        "--cameras",
+        tmp_path / "cams.json",
+        "--out",
+        tmp_path / "out",
+        "--cage",
+        tmp_path / "cage.npz",
+        "--deformed",
+        poses,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "frame f01: 0 inverted and 0 degenerate of 48 tets" in proc.stdout + proc.stderr
     bend = CageBend(model, rest, tets)
@@ -221,8 +238,19 @@ def test_cli_renders_an_animation_from_a_folder_of_poses(sphere_nerf, model, tmp
     assert _psnr(first, last) < 30  # the frames did follow their poses
 
     def error(*extra):
-        out = _cli("render", "--nerf", ckpt, "--cameras", tmp_path / "cams.json", "--out", tmp_path / "bad",
-                   "--cage", tmp_path / "cage.npz", "--deformed", *extra)
+        out = _cli(
+            "render",
+            "--nerf",
+            ckpt,
+            "--cameras",
+            tmp_path / "cams.json",
+            "--out",
+            tmp_path / "bad",
+            "--cage",
+            tmp_path / "cage.npz",
+            "--deformed",
+            *extra,
+        )
         assert out.returncode == 2, out.stderr
         return out.stderr
 
@@ -249,18 +277,27 @@ def test_the_cpu_kernels_and_the_torch_path_agree(model):
 
     rest, tets = box_cage((5, 5, 5), lo=(-1.2,) * 3, hi=(1.2,) * 3)
     a = 0.4 * np.clip(rest[:, 2], 0, None)  # twist the upper half
-    posed = np.stack([np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1], np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1],
-                      rest[:, 2] + 0.1], axis=1)
+    posed = np.stack(
+        [
+            np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1],
+            np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1],
+            rest[:, 2] + 0.1,
+        ],
+        axis=1,
+    )
     pts = torch.as_tensor(np.random.default_rng(1).uniform(-1.4, 1.4, (50000, 3)), dtype=torch.float32)
-    dirs = torch.nn.functional.normalize(torch.as_tensor(np.random.default_rng(2).normal(size=(50000, 3)),
-                                                         dtype=torch.float32), dim=1)
+    dirs = torch.nn.functional.normalize(
+        torch.as_tensor(np.random.default_rng(2).normal(size=(50000, 3)), dtype=torch.float32), dim=1
+    )
     results = []
     from blender_nerf_deform.engine import backend
 
     for path in ("auto", "torch"):  # the whole bender on one path: its kernels and its point location
         with backend.forced(path):
             bend = CageBend(model, rest, tets)
-            assert bend.use_kernels == (path == "auto") and bend.rest.backend == ("numba" if path == "auto" else "torch")
+            assert bend.use_kernels == (path == "auto") and bend.rest.backend == (
+                "numba" if path == "auto" else "torch"
+            )
             bend.set_deformed(posed)
             results.append((bend.occupancy.aabb, bend.occupancy.mask, *bend.sample_transform(pts, dirs)))
     (box_k, mask_k, p_k, d_k, keep_k, s_k), (box_t, mask_t, p_t, d_t, keep_t, s_t) = results

@@ -7,15 +7,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fixtures import bar_handles
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import inversion_report, signed_volumes
 from blender_nerf_deform.engine.geometry.cage import box_cage
-from blender_nerf_deform.engine.geometry.cage_refine import bisect, median_edge, reembed, separate_regions, shared_vertices
+from blender_nerf_deform.engine.geometry.cage_refine import (
+    bisect,
+    median_edge,
+    reembed,
+    separate_regions,
+    shared_vertices,
+)
 from blender_nerf_deform.engine.geometry.deform import ArapDeformer, regions_to_cage
 from blender_nerf_deform.engine.geometry.embedding import Embedding, embed_points_by_part
 from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
-from fixtures import bar_handles
 
 
 @pytest.fixture(scope="module")

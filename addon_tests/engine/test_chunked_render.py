@@ -4,14 +4,13 @@ and ray-bent, on both code paths; the fast frame path agrees with the legacy one
 import numpy as np
 import pytest
 import torch
+from fixtures.ball_model import ball_model
+from fixtures.sphere_data import look_at
 
 from blender_nerf_deform.engine import backend
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.nerf import renderer
 from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
-
-from fixtures.ball_model import ball_model
-from fixtures.sphere_data import look_at
 
 W, H = 150, 97  # not a multiple of the tile size: the last tile row and column are cut
 
@@ -35,8 +34,14 @@ def _bend(model, pose):
         deformed = rest
     else:  # twist the upper half about z
         a = 0.5 * np.clip(rest[:, 2], 0, None)
-        deformed = np.stack([np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1],
-                             np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1], rest[:, 2]], axis=1)
+        deformed = np.stack(
+            [
+                np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1],
+                np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1],
+                rest[:, 2],
+            ],
+            axis=1,
+        )
     bend = CageBend(model, rest, tets).set_deformed(deformed)
     return {"sample_transform": bend.sample_transform, "occupancy": bend.occupancy}
 
@@ -74,9 +79,9 @@ def test_a_frame_in_many_chunks_equals_the_frame_in_one(model, pose, path):
     # on both sides of each equal the one-chunk frame's, and the frame has content across them.
     diff = np.abs(chunked["rgba"] - whole).max(axis=-1)
     for b in range(renderer.TILE, W, renderer.TILE):
-        assert diff[:, b - 1: b + 1].max() <= 1e-5
+        assert diff[:, b - 1 : b + 1].max() <= 1e-5
     for b in range(renderer.TILE, H, renderer.TILE):
-        assert diff[b - 1: b + 1, :].max() <= 1e-5
+        assert diff[b - 1 : b + 1, :].max() <= 1e-5
     cols, rows = list(range(renderer.TILE, W, renderer.TILE)), list(range(renderer.TILE, H, renderer.TILE))
     assert (alpha[:, cols] > 0.5).any() and (alpha[rows, :] > 0.5).any()
     order = renderer.tile_order(W, H).numpy()

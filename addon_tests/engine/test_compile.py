@@ -10,12 +10,12 @@ import sys
 
 import numpy as np
 import pytest
-
-from blender_nerf_deform.engine.geometry.mesh_io import save_cage
-from blender_nerf_deform.engine.geometry.warmup import bent_pose, lattice_cage
 from fixtures import REPO
 from fixtures.room_data import write_room_dataset
 from fixtures.sphere_data import write_sphere_dataset
+
+from blender_nerf_deform.engine.geometry.mesh_io import save_cage
+from blender_nerf_deform.engine.geometry.warmup import bent_pose, lattice_cage
 
 pytestmark = pytest.mark.slow
 
@@ -38,8 +38,9 @@ SurfaceArap(v, t, embed_points(p, v, t), [np.flatnonzero(p[:, 2] > 2.5)], np.fla
 
 
 def _engine(env, *args):
-    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *args], cwd=REPO, env=env,
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *args], cwd=REPO, env=env, capture_output=True, text=True
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.stdout + proc.stderr
 
@@ -55,16 +56,31 @@ def test_after_compile_the_first_train_render_bend_and_arap_compile_nothing(tmp_
     sphere = write_sphere_dataset(tmp_path / "sphere", n_views=4, size=24)
     room = write_room_dataset(tmp_path / "room", n_views=4, size=24)
     for name, data in (("bounded", sphere), ("unbounded", room)):
-        logs[f"train {name}"] = _engine(env, "train", "--data", str(data), "--out", str(tmp_path / name), "--steps", "20")
+        logs[f"train {name}"] = _engine(
+            env, "train", "--data", str(data), "--out", str(tmp_path / name), "--steps", "20"
+        )
         ckpt = str(tmp_path / name / "nerf.ckpt")
-        logs[f"render {name}"] = _engine(env, "render", "--nerf", ckpt, "--cameras", str(data), "--out", str(tmp_path / f"{name}_frames"))
+        logs[f"render {name}"] = _engine(
+            env, "render", "--nerf", ckpt, "--cameras", str(data), "--out", str(tmp_path / f"{name}_frames")
+        )
         # A cage of its own (not the compile step's), bent: point location, the pose, the sample map.
         v, t = lattice_cage((-0.7, -0.6, -0.5), (0.6, 0.7, 0.8), n=4)
         save_cage(tmp_path / f"{name}_cage.npz", v, t)
         np.save(tmp_path / f"{name}_pose.npy", bent_pose(v, angle=0.5))
-        logs[f"bent render {name}"] = _engine(env, "render", "--nerf", ckpt, "--cameras", str(data), "--out",
-                                              str(tmp_path / f"{name}_bent"), "--cage", str(tmp_path / f"{name}_cage.npz"),
-                                              "--deformed", str(tmp_path / f"{name}_pose.npy"))
+        logs[f"bent render {name}"] = _engine(
+            env,
+            "render",
+            "--nerf",
+            ckpt,
+            "--cameras",
+            str(data),
+            "--out",
+            str(tmp_path / f"{name}_bent"),
+            "--cage",
+            str(tmp_path / f"{name}_cage.npz"),
+            "--deformed",
+            str(tmp_path / f"{name}_pose.npy"),
+        )
     proc = subprocess.run([sys.executable, "-c", _ARAP], cwd=REPO, env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
     logs["arap"] = proc.stdout + proc.stderr

@@ -5,6 +5,8 @@ besides the torch march's reads; its frames agree with the CPU kernels'."""
 import numpy as np
 import pytest
 import torch
+from fixtures.ball_model import ball_model
+from fixtures.sphere_data import look_at, write_sphere_dataset
 
 from blender_nerf_deform.engine import backend
 from blender_nerf_deform.engine.geometry.cage import box_cage
@@ -14,9 +16,6 @@ from blender_nerf_deform.engine.nerf.dataset import load_dataset
 from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.renderer import Camera, render_image
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
-
-from fixtures.ball_model import ball_model
-from fixtures.sphere_data import look_at, write_sphere_dataset
 
 TINY = {"log2_table_size": 12, "finest_resolution": 64, "occ_resolution": 16, "steps_per_diagonal": 64}
 
@@ -35,8 +34,10 @@ def _twist(model):
 
     rest, tets = box_cage((3, 3, 3), lo=(-1.0,) * 3, hi=(1.0,) * 3)
     a = 0.5 * np.clip(rest[:, 2], 0, None)
-    deformed = np.stack([np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1],
-                         np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1], rest[:, 2]], axis=1)
+    deformed = np.stack(
+        [np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1], np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1], rest[:, 2]],
+        axis=1,
+    )
     bend = CageBend(model, rest, tets).set_deformed(deformed)
     return {"sample_transform": bend.sample_transform, "occupancy": bend.occupancy}
 
@@ -99,8 +100,13 @@ def test_a_training_step_waits_for_the_device_once(sphere):
     torch.manual_seed(0)
     with backend.forced("torch"):
         model = NerfModel(NerfConfig(aabb=sphere.aabb.reshape(-1).tolist(), **TINY))
-        trainer = Trainer(model, sphere, TrainOptions(steps=40, target_samples=1 << 10, occ_warmup_steps=4,
-                                                      occ_update_every=2, distortion_weight=0.01))
+        trainer = Trainer(
+            model,
+            sphere,
+            TrainOptions(
+                steps=40, target_samples=1 << 10, occ_warmup_steps=4, occ_update_every=2, distortion_weight=0.01
+            ),
+        )
         assert not trainer.lazy_table
         for step in range(6):  # occupancy updates in warm-up and after (every cell, then drawn cells)
             with LaunchCounter() as counter:

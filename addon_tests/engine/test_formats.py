@@ -14,16 +14,23 @@ import shutil
 
 import numpy as np
 import pytest
+from fixtures import SHARED_DATASETS
+from fixtures.format_data import (
+    align,
+    focal,
+    forward_facing_cameras,
+    sphere_cameras,
+    write_colmap_images_bin,
+    write_colmap_text,
+    write_llff,
+    write_transforms,
+)
 from PIL import Image
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.nerf.camera import Distortion
 from blender_nerf_deform.engine.nerf.dataset import load_dataset
 from blender_nerf_deform.engine.sfm.orient import axes_focus
-
-from fixtures import SHARED_DATASETS
-from fixtures.format_data import (align, focal, forward_facing_cameras, sphere_cameras, write_colmap_images_bin,
-                                  write_colmap_text, write_llff, write_transforms)
 
 SIZE = 16
 
@@ -42,7 +49,9 @@ def _assert_same_cameras(ref, ds, check_intrinsics=True):
     for a, b in zip(ref.cameras, ds.cameras):
         np.testing.assert_allclose(b.c2w[:3, :3], r @ a.c2w[:3, :3], atol=1e-6)  # same axes, same order and signs
         if check_intrinsics:
-            assert (b.fx, b.fy, b.cx, b.cy, b.width, b.height) == pytest.approx((a.fx, a.fy, a.cx, a.cy, a.width, a.height))
+            assert (b.fx, b.fy, b.cx, b.cy, b.width, b.height) == pytest.approx(
+                (a.fx, a.fy, a.cx, a.cy, a.width, a.height)
+            )
     return s, r, t
 
 
@@ -89,8 +98,11 @@ def test_llff_folder_choice_and_focal_scaling(tmp_path, capsys):
     c2ws, names = forward_facing_cameras(2), _names(4)
     llff = write_llff(tmp_path / "llff", c2ws, SIZE, names, factors=(2, 4), full_factor=4)
     full_f = focal(SIZE * 4)
-    for kwargs, folder, width in (({"downscale": 2}, "images_2/", 2 * SIZE), ({"downscale": 8}, "images_4/", SIZE // 2),
-                                  ({}, "images_2/", 2 * SIZE)):
+    for kwargs, folder, width in (
+        ({"downscale": 2}, "images_2/", 2 * SIZE),
+        ({"downscale": 8}, "images_4/", SIZE // 2),
+        ({}, "images_2/", 2 * SIZE),
+    ):
         ds = load_dataset(llff, **kwargs)
         assert ds.meta["images_folder"] == folder and ds.width == width and ds.images.shape[2] == width, kwargs
         assert ds.cameras[0].fx == pytest.approx(full_f * width / (4 * SIZE)) and ds.cameras[0].cx == width / 2
@@ -126,7 +138,9 @@ def test_colmap_text_and_binary_models_give_the_cameras_of_its_transforms_json(t
     _assert_same_cameras(ref, load_dataset(binary))
     # A radial lens: COLMAP's SIMPLE_RADIAL is OpenCV's k1.
     f = focal(SIZE)
-    radial = write_colmap_text(tmp_path / "radial", c2ws, SIZE, names, camera=f"SIMPLE_RADIAL {SIZE} {SIZE} {f} 8 8 0.05")
+    radial = write_colmap_text(
+        tmp_path / "radial", c2ws, SIZE, names, camera=f"SIMPLE_RADIAL {SIZE} {SIZE} {f} 8 8 0.05"
+    )
     assert load_dataset(radial, load_images=False).cameras[0].distortion == Distortion("opencv", k1=0.05)
 
 
@@ -196,7 +210,13 @@ def test_nan_poses_and_unknown_camera_models_are_errors_naming_them(tmp_path):
 def _ngp(tmp_path, **keys):
     tmp_path.mkdir(parents=True, exist_ok=True)
     Image.new("RGB", (8, 6)).save(tmp_path / "a.png")
-    meta = {"fl_x": 8.0, "w": 8, "h": 6, **keys, "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}]}
+    meta = {
+        "fl_x": 8.0,
+        "w": 8,
+        "h": 6,
+        **keys,
+        "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}],
+    }
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     return tmp_path
 
@@ -249,10 +269,21 @@ def test_nerfstudio_masks_and_applied_transform(tmp_path):
     c2w = np.eye(4)
     c2w[:3, 3] = (1, 2, 3)
     applied = [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]]
-    meta = {"camera_model": "OPENCV", "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "k1": 0.01,
-            "applied_transform": applied,
-            "frames": [{"file_path": "images/a.png", "mask_path": "masks/a.png", "transform_matrix": c2w.tolist()},
-                       {"file_path": "images/b.png", "transform_matrix": c2w.tolist()}]}
+    meta = {
+        "camera_model": "OPENCV",
+        "fl_x": 8.0,
+        "fl_y": 8.0,
+        "cx": 4.0,
+        "cy": 3.0,
+        "w": 8,
+        "h": 6,
+        "k1": 0.01,
+        "applied_transform": applied,
+        "frames": [
+            {"file_path": "images/a.png", "mask_path": "masks/a.png", "transform_matrix": c2w.tolist()},
+            {"file_path": "images/b.png", "transform_matrix": c2w.tolist()},
+        ],
+    }
     (folder / "transforms.json").write_text(json.dumps(meta))
     ds = load_dataset(folder)
     assert ds.source_format == "nerfstudio" and ds.describe().startswith("2 frames (nerfstudio transforms.json) from ")
@@ -334,8 +365,9 @@ def test_a_capture_shot_all_around_puts_its_cameras_on_the_inner_box(tmp_path):
     for k, m in enumerate(c2ws):
         Image.new("RGB", (8, 8)).save(folder / f"{k}.png")
         frames.append({"file_path": f"{k}.png", "transform_matrix": m.tolist()})
-    (folder / "transforms.json").write_text(json.dumps({"fl_x": 30.0, "w": 8, "h": 8, "aabb_scale": 16,
-                                                        "frames": frames}))
+    (folder / "transforms.json").write_text(
+        json.dumps({"fl_x": 30.0, "w": 8, "h": 8, "aabb_scale": 16, "frames": frames})
+    )
     ds = load_dataset(folder)
     np.testing.assert_allclose(ds.inner_aabb, [[-4] * 3, [4] * 3], atol=0.05)
     np.testing.assert_allclose(ds.aabb, [[-16 * 0.5 / 0.33] * 3, [16 * 0.5 / 0.33] * 3], rtol=1e-6)
@@ -382,7 +414,9 @@ def test_shared_captures_load_in_their_formats():
     lo, hi = ds.aabb
     ilo, ihi = ds.inner_aabb
     assert (lo <= ilo).all() and (ihi <= hi).all()
-    _one_line_error(r"fern/sparse/0: incomplete COLMAP model: no images\.bin .*poses_bounds\.npy", fern / "sparse" / "0")
+    _one_line_error(
+        r"fern/sparse/0: incomplete COLMAP model: no images\.bin .*poses_bounds\.npy", fern / "sparse" / "0"
+    )
     ds = load_dataset(fox, downscale=8, load_images=False)
     assert ds.source_format == "instant-ngp"
     np.testing.assert_allclose(ds.aabb, [[-4 * 0.5 / 0.33] * 3, [4 * 0.5 / 0.33] * 3], rtol=1e-6)

@@ -7,13 +7,14 @@ import sys
 
 import numpy as np
 import pytest
-
 from fixtures import REPO
 from fixtures.sphere_data import RADIUS, write_sphere_dataset
 
 
 def _cli(*args, check=True):
-    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO, capture_output=True, text=True
+    )
     if check:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
@@ -67,8 +68,23 @@ def test_extract_and_cage_cli_errors(trained_sphere, tmp_path):
     out = tmp_path / "m.ply"
     proc = _cli("extract", "--nerf", ckpt, "--out", out, "--resolution", "32", "--threshold", "1e9", check=False)
     assert proc.returncode == 2 and "density grid is empty" in proc.stderr and not out.exists()
-    proc = _cli("extract", "--nerf", ckpt, "--out", out, "--resolution", "48", "--threshold", "1", "--min-volume", "100", check=False)
-    assert proc.returncode == 2 and "no component left above the volume threshold 100" in proc.stderr and not out.exists()
+    proc = _cli(
+        "extract",
+        "--nerf",
+        ckpt,
+        "--out",
+        out,
+        "--resolution",
+        "48",
+        "--threshold",
+        "1",
+        "--min-volume",
+        "100",
+        check=False,
+    )
+    assert (
+        proc.returncode == 2 and "no component left above the volume threshold 100" in proc.stderr and not out.exists()
+    )
     bad = tmp_path / "open.ply"
     from blender_nerf_deform.engine.geometry.mesh_io import write_ply
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.deform import (
     ArapDeformer,
@@ -13,7 +14,6 @@ from blender_nerf_deform.engine.geometry.deform import (
     linear_blend,
     regions_to_cage,
 )
-from blender_nerf_deform.engine.errors import EngineError
 
 
 def _cube():

@@ -51,7 +51,9 @@ def test_extraction_finds_the_object_and_drops_the_planted_floaters(extracted):
     # The object's volume: union of the two balls. Density 10 of a 100-peak sigmoid lies ln(9)/60 outside
     # each ball's nominal radius (the sum of the two blobs adds a little in their overlap).
     r1, r2, d = 0.5 + np.log(9) / 60, 0.3 + np.log(9) / 60, 0.5
-    lens = np.pi * (r1 + r2 - d) ** 2 * (d**2 + 2 * d * r2 - 3 * r2**2 + 2 * d * r1 + 6 * r1 * r2 - 3 * r1**2) / (12 * d)
+    lens = (
+        np.pi * (r1 + r2 - d) ** 2 * (d**2 + 2 * d * r2 - 3 * r2**2 + 2 * d * r1 + 6 * r1 * r2 - 3 * r1**2) / (12 * d)
+    )
     union = 4 / 3 * np.pi * (r1**3 + r2**3) - lens
     assert abs(res.kept[0].volume - union) / union < 0.03
     # The surface lies at the threshold: density there ≈ threshold.
@@ -81,7 +83,9 @@ def test_extraction_keeps_everything_when_the_volume_threshold_is_tiny():
 def test_extraction_errors_name_the_problem():
     with pytest.raises(EngineError, match=r"density grid is empty.*threshold 10"):
         extract_mesh(lambda p: np.zeros(len(p)), BOUNDS, resolution=16)
-    with pytest.raises(EngineError, match=r"no component left above the volume threshold 5.*largest component's volume is 0\.\d+"):
+    with pytest.raises(
+        EngineError, match=r"no component left above the volume threshold 5.*largest component's volume is 0\.\d+"
+    ):
         extract_mesh(scene_density, BOUNDS, resolution=48, min_volume=5.0)
     with pytest.raises(EngineError, match="max > min"):
         extract_mesh(scene_density, [[0, 0, 0], [0, 1, 1]], resolution=16)
@@ -261,8 +265,13 @@ def test_density_exactly_at_the_threshold_on_grid_points_still_gives_a_closed_ma
     grid[(np.abs(x) + np.abs(y) + np.abs(z) >= 1.2) & (np.abs(x) + np.abs(y) + np.abs(z) < 1.45)] = 10.0
     res = extract_mesh(None, [[-1, -1, -1], [1, 1, 1]], threshold=10.0, grid=grid)
     check_closed_mesh(res.vertices, res.faces)
-    a = np.linalg.norm(np.cross(res.vertices[res.faces[:, 1]] - res.vertices[res.faces[:, 0]],
-                                res.vertices[res.faces[:, 2]] - res.vertices[res.faces[:, 0]]), axis=1)
+    a = np.linalg.norm(
+        np.cross(
+            res.vertices[res.faces[:, 1]] - res.vertices[res.faces[:, 0]],
+            res.vertices[res.faces[:, 2]] - res.vertices[res.faces[:, 0]],
+        ),
+        axis=1,
+    )
     assert (a > 0).all()
 
 

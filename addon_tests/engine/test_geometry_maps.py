@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import (
     deformed_to_rest_affines,
     inversion_report,
@@ -15,8 +16,7 @@ from blender_nerf_deform.engine.geometry.barycentric import (
     tet_inverses,
     tet_matrices,
 )
-from blender_nerf_deform.engine.geometry.cage import box_cage, boundary_faces
-from blender_nerf_deform.engine.errors import EngineError
+from blender_nerf_deform.engine.geometry.cage import boundary_faces, box_cage
 
 
 def barycentric(points, tet_ids, inverses):
@@ -197,7 +197,9 @@ def test_point_location_agrees_with_igl_in_element(backend, dtype_name):
     assert len(differ) <= 0.001 * len(Q)
     # The barycentric coordinates returned are those of the point in the found tet.
     inside = got >= 0
-    assert np.allclose(bary[inside], barycentric(Q[inside], got[inside], Minv), atol=1e-4 if dtype_name == "float32" else 1e-9)
+    assert np.allclose(
+        bary[inside], barycentric(Q[inside], got[inside], Minv), atol=1e-4 if dtype_name == "float32" else 1e-9
+    )
     # Membership: contains == located.
     assert np.array_equal(loc.contains(Q).numpy(), inside)
 
@@ -248,9 +250,24 @@ def test_numba_grid_lists_candidates_best_first_whatever_the_thread_count(tmp_pa
         env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
         env.pop("PYTEST_XDIST_WORKER_COUNT", None)
         this_test = f"{__file__}::test_numba_grid_lists_candidates_best_first_whatever_the_thread_count"
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--basetemp",
-                               str(tmp_path / "child"), this_test], env=env, cwd=Path(__file__).parent.parent,
-                              capture_output=True, text=True, timeout=600)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pytest",
+                "-q",
+                "-p",
+                "no:cacheprovider",
+                "--basetemp",
+                str(tmp_path / "child"),
+                this_test,
+            ],
+            env=env,
+            cwd=Path(__file__).parent.parent,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert proc.returncode == 0 and "1 passed" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-2000:]
         return
 

@@ -21,10 +21,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures import REPO
 from fixtures.sphere_data import write_sphere_dataset
+from PIL import Image
 
 ENGINE = [sys.executable, "-m", "blender_nerf_deform.engine"]
 SIZE = 16
@@ -72,8 +71,16 @@ def base(tmp_path_factory):
     meta = json.loads((data / "transforms.json").read_text())
     cameras = {"camera_angle_x": meta["camera_angle_x"], "w": SIZE, "h": SIZE, "frames": meta["frames"][:1]}
     (root / "cameras.json").write_text(json.dumps(cameras))
-    return {"root": root, "data": data, "ckpt": root / "run" / "nerf.ckpt", "mesh": root / "mesh.ply",
-            "cage": root / "cage.npz", "rest": root / "rest.npy", "cameras": root / "cameras.json", "meta": cameras}
+    return {
+        "root": root,
+        "data": data,
+        "ckpt": root / "run" / "nerf.ckpt",
+        "mesh": root / "mesh.ply",
+        "cage": root / "cage.npz",
+        "rest": root / "rest.npy",
+        "cameras": root / "cameras.json",
+        "meta": cameras,
+    }
 
 
 def _tampered(base, tmp: Path, change) -> Path:
@@ -91,7 +98,7 @@ def _cameras(base, tmp: Path, **changes) -> Path:
     meta = json.loads(json.dumps(base["meta"]))
     for key, value in changes.items():
         if key.startswith("frame0_"):
-            meta["frames"][0][key[len("frame0_"):]] = value
+            meta["frames"][0][key[len("frame0_") :]] = value
         else:
             meta[key] = value
     path = tmp / "cams.json"
@@ -201,8 +208,10 @@ def _valid_binary_ply(base) -> bytes:
     return base["mesh"].read_bytes()
 
 
-ASCII_HEADER = b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n" \
-               b"element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+ASCII_HEADER = (
+    b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    b"element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+)
 
 
 def _nan_ply(tmp):
@@ -246,8 +255,18 @@ def _region_file(tmp: Path, text) -> Path:
 
 
 def _extract_in(base, tmp, region, *extra):
-    return ["extract", "--nerf", base["ckpt"], "--out", tmp / "m.ply", "--resolution", "32",
-            "--region", _region_file(tmp, region) if region is not None else tmp / "missing.json", *extra]
+    return [
+        "extract",
+        "--nerf",
+        base["ckpt"],
+        "--out",
+        tmp / "m.ply",
+        "--resolution",
+        "32",
+        "--region",
+        _region_file(tmp, region) if region is not None else tmp / "missing.json",
+        *extra,
+    ]
 
 
 UNIT_REGION = {"center": [0, 0, 0], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}
@@ -320,129 +339,356 @@ def _collapsed_pose(base, tmp):
 
 CASES = {
     # --- crashes (SIGSEGV before): a NaN reaching a numba kernel
-    "checkpoint aabb NaN": lambda b, t: (_render_with(_tampered(b, t, _nan_aabb), b, t), ("tampered.ckpt", "aabb"), ["frames"]),
-    "cage with a NaN vertex": lambda b, t: (_bent(b, t, _nan_vertex_cage(b, t)), ("bad_cage.npz", "vertex 3"), ["frames"]),
+    "checkpoint aabb NaN": lambda b, t: (
+        _render_with(_tampered(b, t, _nan_aabb), b, t),
+        ("tampered.ckpt", "aabb"),
+        ["frames"],
+    ),
+    "cage with a NaN vertex": lambda b, t: (
+        _bent(b, t, _nan_vertex_cage(b, t)),
+        ("bad_cage.npz", "vertex 3"),
+        ["frames"],
+    ),
     # --- silently wrong before
-    "checkpoint NaN weights": lambda b, t: (_render_with(_tampered(b, t, _nan_weights), b, t),
-                                            ("tampered.ckpt", "non-finite weights (a diverged training run?)"), ["frames"]),
-    "frame named sub/dir/": lambda b, t: (_render_cams(b, t, _cameras(b, t, frame0_file_path="sub/dir/")), ("cams.json", "'sub/dir/'"), ["frames"]),
-    "cage --target-tets -5": lambda b, t: (_cage_cmd(b, t, None, "--target-tets", "-5"), ("--target-tets", "-5"), ["cage.npz"]),
-    "extract --resolution 0": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--resolution", "0"], ("--resolution", "0"), ["m.ply"]),
+    "checkpoint NaN weights": lambda b, t: (
+        _render_with(_tampered(b, t, _nan_weights), b, t),
+        ("tampered.ckpt", "non-finite weights (a diverged training run?)"),
+        ["frames"],
+    ),
+    "frame named sub/dir/": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, frame0_file_path="sub/dir/")),
+        ("cams.json", "'sub/dir/'"),
+        ["frames"],
+    ),
+    "cage --target-tets -5": lambda b, t: (
+        _cage_cmd(b, t, None, "--target-tets", "-5"),
+        ("--target-tets", "-5"),
+        ["cage.npz"],
+    ),
+    "extract --resolution 0": lambda b, t: (
+        ["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--resolution", "0"],
+        ("--resolution", "0"),
+        ["m.ply"],
+    ),
     "render --downscale 0": lambda b, t: ([*_c(b, t), "--downscale", "0"], ("--downscale", "0"), ["frames"]),
-    "train --downscale 0": lambda b, t: (["train", "--data", b["data"], "--out", t / "run", "--downscale", "0"], ("--downscale", "0"), ["run"]),
+    "train --downscale 0": lambda b, t: (
+        ["train", "--data", b["data"], "--out", t / "run", "--downscale", "0"],
+        ("--downscale", "0"),
+        ["run"],
+    ),
     # --- tracebacks before
-    "camera_angle_x 0": lambda b, t: (_render_cams(b, t, _cameras(b, t, camera_angle_x=0)), ("cams.json", "camera_angle_x"), ["frames"]),
-    "w is 'abc' (render)": lambda b, t: (_render_cams(b, t, _cameras(b, t, w="abc")), ("cams.json", "`w`", "'abc'"), ["frames"]),
-    "w is 'abc' (train)": lambda b, t: (["train", "--data", _dataset(b, t, w="abc"), "--out", t / "run"], ("transforms.json", "`w`", "'abc'"), ["run"]),
-    "w is NaN": lambda b, t: (_render_cams(b, t, _cameras(b, t, w=float("nan"))), ("cams.json", "`w`", "nan"), ["frames"]),
-    "k1 is 'abc'": lambda b, t: (_render_cams(b, t, _cameras(b, t, k1="abc")), ("cams.json", "`k1`", "'abc'"), ["frames"]),
-    "train --max-seconds nan": lambda b, t: (["train", "--data", b["data"], "--out", t / "run", "--max-seconds", "nan"], ("--max-seconds", "nan"), ["run"]),
-    "train --max-seconds inf": lambda b, t: (["train", "--data", b["data"], "--out", t / "run", "--max-seconds", "inf"], ("--max-seconds", "inf"), ["run"]),
-    "train --drop-blurry nan": lambda b, t: (["train", "--data", b["data"], "--out", t / "run", "--drop-blurry", "nan"],
-                                             ("--drop-blurry", "nan"), ["run"]),
-    "train --drop-blurry 1.5": lambda b, t: (["train", "--data", b["data"], "--out", t / "run", "--drop-blurry", "1.5"],
-                                             ("--drop-blurry", "1.5"), ["run"]),
-    "train --seed 2**64": lambda b, t: (["train", "--data", b["data"], "--out", t / "run", "--seed", str(2**64)], ("--seed", str(2**64)), ["run"]),
-    "checkpoint steps_per_diagonal 0": lambda b, t: (_render_with(_tampered(b, t, _zero_steps), b, t), ("tampered.ckpt", "steps_per_diagonal"), ["frames"]),
-    "checkpoint occupancy NaN": lambda b, t: (_render_with(_tampered(b, t, _nan_occupancy), b, t), ("tampered.ckpt", "occupancy"), ["frames"]),
-    "checkpoint occupancy too short": lambda b, t: (_render_with(_tampered(b, t, _short_occupancy), b, t), ("tampered.ckpt", "occupancy"), ["frames"]),
-    "checkpoint config string": lambda b, t: (_render_with(_tampered(b, t, _string_config), b, t), ("tampered.ckpt", "n_levels"), ["frames"]),
-    "checkpoint unbounded without background": lambda b, t: (_render_with(_tampered(b, t, _unbounded_without_background), b, t),
-                                                             ("tampered.ckpt", "background occupancy"), ["frames"]),
-    "checkpoint unknown contraction": lambda b, t: (_render_with(_tampered(b, t, _unknown_contraction), b, t),
-                                                    ("tampered.ckpt", "contraction", "spherical"), ["frames"]),
-    "checkpoint background NaN": lambda b, t: (_render_with(_tampered(b, t, _background_nan), b, t),
-                                               ("tampered.ckpt", "background.density"), ["frames"]),
-    "extract --threshold nan": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "nan"], ("--threshold", "nan"), ["m.ply"]),
-    "extract --threshold -1": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "-1"], ("--threshold", "-1"), ["m.ply"]),
-    "render a 100000x100000 camera": lambda b, t: (_render_cams(b, t, _cameras(b, t, w=100000, h=100000)),
-                                                   ("100000x100000 frame", "GiB", "render it smaller"), ["frames"]),
-    "extract --resolution 2048": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--resolution", "2048"],
-                                               ("resolution 2048", "GiB"), ["m.ply"]),
-    "PLY truncated": lambda b, t: (_cage_cmd(b, t, _ply(t, _valid_binary_ply(b)[:-100])), "bad.ply is truncated", ["cage.npz"]),
-    "PLY non-integer count": lambda b, t: (_cage_cmd(b, t, _ply(t, ASCII_HEADER.replace(b"vertex 3", b"vertex 3.5") + b"0 0 0\n")),
-                                           ("bad.ply", "element vertex 3.5"), ["cage.npz"]),
-    "PLY short ASCII row": lambda b, t: (_cage_cmd(b, t, _ply(t, ASCII_HEADER + b"0 0 0\n1 0\n0 1 0\n3 0 1 2\n")), ("bad.ply", "row 1"), ["cage.npz"]),
-    "PLY no newline after end_header": lambda b, t: (_cage_cmd(b, t, _ply(t, ASCII_HEADER[:-1])), ("bad.ply", "end_header"), ["cage.npz"]),
+    "camera_angle_x 0": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, camera_angle_x=0)),
+        ("cams.json", "camera_angle_x"),
+        ["frames"],
+    ),
+    "w is 'abc' (render)": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, w="abc")),
+        ("cams.json", "`w`", "'abc'"),
+        ["frames"],
+    ),
+    "w is 'abc' (train)": lambda b, t: (
+        ["train", "--data", _dataset(b, t, w="abc"), "--out", t / "run"],
+        ("transforms.json", "`w`", "'abc'"),
+        ["run"],
+    ),
+    "w is NaN": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, w=float("nan"))),
+        ("cams.json", "`w`", "nan"),
+        ["frames"],
+    ),
+    "k1 is 'abc'": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, k1="abc")),
+        ("cams.json", "`k1`", "'abc'"),
+        ["frames"],
+    ),
+    "train --max-seconds nan": lambda b, t: (
+        ["train", "--data", b["data"], "--out", t / "run", "--max-seconds", "nan"],
+        ("--max-seconds", "nan"),
+        ["run"],
+    ),
+    "train --max-seconds inf": lambda b, t: (
+        ["train", "--data", b["data"], "--out", t / "run", "--max-seconds", "inf"],
+        ("--max-seconds", "inf"),
+        ["run"],
+    ),
+    "train --drop-blurry nan": lambda b, t: (
+        ["train", "--data", b["data"], "--out", t / "run", "--drop-blurry", "nan"],
+        ("--drop-blurry", "nan"),
+        ["run"],
+    ),
+    "train --drop-blurry 1.5": lambda b, t: (
+        ["train", "--data", b["data"], "--out", t / "run", "--drop-blurry", "1.5"],
+        ("--drop-blurry", "1.5"),
+        ["run"],
+    ),
+    "train --seed 2**64": lambda b, t: (
+        ["train", "--data", b["data"], "--out", t / "run", "--seed", str(2**64)],
+        ("--seed", str(2**64)),
+        ["run"],
+    ),
+    "checkpoint steps_per_diagonal 0": lambda b, t: (
+        _render_with(_tampered(b, t, _zero_steps), b, t),
+        ("tampered.ckpt", "steps_per_diagonal"),
+        ["frames"],
+    ),
+    "checkpoint occupancy NaN": lambda b, t: (
+        _render_with(_tampered(b, t, _nan_occupancy), b, t),
+        ("tampered.ckpt", "occupancy"),
+        ["frames"],
+    ),
+    "checkpoint occupancy too short": lambda b, t: (
+        _render_with(_tampered(b, t, _short_occupancy), b, t),
+        ("tampered.ckpt", "occupancy"),
+        ["frames"],
+    ),
+    "checkpoint config string": lambda b, t: (
+        _render_with(_tampered(b, t, _string_config), b, t),
+        ("tampered.ckpt", "n_levels"),
+        ["frames"],
+    ),
+    "checkpoint unbounded without background": lambda b, t: (
+        _render_with(_tampered(b, t, _unbounded_without_background), b, t),
+        ("tampered.ckpt", "background occupancy"),
+        ["frames"],
+    ),
+    "checkpoint unknown contraction": lambda b, t: (
+        _render_with(_tampered(b, t, _unknown_contraction), b, t),
+        ("tampered.ckpt", "contraction", "spherical"),
+        ["frames"],
+    ),
+    "checkpoint background NaN": lambda b, t: (
+        _render_with(_tampered(b, t, _background_nan), b, t),
+        ("tampered.ckpt", "background.density"),
+        ["frames"],
+    ),
+    "extract --threshold nan": lambda b, t: (
+        ["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "nan"],
+        ("--threshold", "nan"),
+        ["m.ply"],
+    ),
+    "extract --threshold -1": lambda b, t: (
+        ["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--threshold", "-1"],
+        ("--threshold", "-1"),
+        ["m.ply"],
+    ),
+    "render a 100000x100000 camera": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, w=100000, h=100000)),
+        ("100000x100000 frame", "GiB", "render it smaller"),
+        ["frames"],
+    ),
+    "extract --resolution 2048": lambda b, t: (
+        ["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--resolution", "2048"],
+        ("resolution 2048", "GiB"),
+        ["m.ply"],
+    ),
+    "PLY truncated": lambda b, t: (
+        _cage_cmd(b, t, _ply(t, _valid_binary_ply(b)[:-100])),
+        "bad.ply is truncated",
+        ["cage.npz"],
+    ),
+    "PLY non-integer count": lambda b, t: (
+        _cage_cmd(b, t, _ply(t, ASCII_HEADER.replace(b"vertex 3", b"vertex 3.5") + b"0 0 0\n")),
+        ("bad.ply", "element vertex 3.5"),
+        ["cage.npz"],
+    ),
+    "PLY short ASCII row": lambda b, t: (
+        _cage_cmd(b, t, _ply(t, ASCII_HEADER + b"0 0 0\n1 0\n0 1 0\n3 0 1 2\n")),
+        ("bad.ply", "row 1"),
+        ["cage.npz"],
+    ),
+    "PLY no newline after end_header": lambda b, t: (
+        _cage_cmd(b, t, _ply(t, ASCII_HEADER[:-1])),
+        ("bad.ply", "end_header"),
+        ["cage.npz"],
+    ),
     "PLY NaN vertex": lambda b, t: (_cage_cmd(b, t, _nan_ply(t)), ("bad.ply", "vertex 3"), ["cage.npz"]),
     "cage --margin -1": lambda b, t: (_cage_cmd(b, t, None, "--margin", "-1"), ("--margin", "-1"), ["cage.npz"]),
     "cage --margin nan": lambda b, t: (_cage_cmd(b, t, None, "--margin", "nan"), ("--margin", "nan"), ["cage.npz"]),
-    "cage --threshold -1": lambda b, t: (_cage_cmd(b, t, None, "--threshold", "-1"), ("--threshold", "-1"), ["cage.npz"]),
-    "render --downscale beyond the image": lambda b, t: ([*_c(b, t), "--downscale", str(4 * SIZE)], ("--downscale", str(4 * SIZE)), ["frames"]),
-    "NUL byte in a frame name": lambda b, t: (_render_cams(b, t, _cameras(b, t, frame0_file_path="a\x00b")), ("cams.json", "NUL"), ["frames"]),
-    "cage vertices are strings": lambda b, t: (_bent(b, t, _string_cage(b, t)), ("bad_cage.npz", "numbers"), ["frames"]),
+    "cage --threshold -1": lambda b, t: (
+        _cage_cmd(b, t, None, "--threshold", "-1"),
+        ("--threshold", "-1"),
+        ["cage.npz"],
+    ),
+    "render --downscale beyond the image": lambda b, t: (
+        [*_c(b, t), "--downscale", str(4 * SIZE)],
+        ("--downscale", str(4 * SIZE)),
+        ["frames"],
+    ),
+    "NUL byte in a frame name": lambda b, t: (
+        _render_cams(b, t, _cameras(b, t, frame0_file_path="a\x00b")),
+        ("cams.json", "NUL"),
+        ["frames"],
+    ),
+    "cage vertices are strings": lambda b, t: (
+        _bent(b, t, _string_cage(b, t)),
+        ("bad_cage.npz", "numbers"),
+        ["frames"],
+    ),
     "read-only render --out": lambda b, t: ([*_c(b, t)[:5], "--out", _unwritable_folder(t) / "frames"], "frames", []),
-    "read-only extract --out": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", _unwritable_folder(t) / "m.ply"], "m.ply", []),
-    "read-only train --out": lambda b, t: (["train", "--data", b["data"], "--out", _unwritable_folder(t) / "run"], "run", []),
+    "read-only extract --out": lambda b, t: (
+        ["extract", "--nerf", b["ckpt"], "--out", _unwritable_folder(t) / "m.ply"],
+        "m.ply",
+        [],
+    ),
+    "read-only train --out": lambda b, t: (
+        ["train", "--data", b["data"], "--out", _unwritable_folder(t) / "run"],
+        "run",
+        [],
+    ),
     # --- edit regions (issue 14): each names the file or value at fault, nothing written
-    "extract --region missing file": lambda b, t: (_extract_in(b, t, None), ("missing.json", "does not exist"), ["m.ply"]),
-    "extract --region not JSON": lambda b, t: (_extract_in(b, t, "{center: 1"), ("region.json", "not valid JSON"), ["m.ply"]),
-    "extract --region zero size": lambda b, t: (_extract_in(b, t, {**UNIT_REGION, "size": [1, 0, 1]}),
-                                                ("region.json", "degenerate"), ["m.ply"]),
-    "extract --region without rotation": lambda b, t: (_extract_in(b, t, {"center": [0, 0, 0], "size": [1, 1, 1]}),
-                                                       ("region.json", "rotation_euler"), ["m.ply"]),
-    "extract --region outside the box": lambda b, t: (_extract_in(b, t, {**UNIT_REGION, "center": [5, 0, 0]}),
-                                                      ("lies outside the NeRF's box",), ["m.ply"]),
-    "extract --region with nothing dense": lambda b, t: (_extract_in(b, t, UNIT_REGION, "--threshold", "1e30"),
-                                                         ("largest density", "region centred at (0, 0, 0)"), ["m.ply"]),
-    "extract --region size of the wrong type": lambda b, t: (_extract_in(b, t, {**UNIT_REGION, "size": "big"}),
-                                                           ("region.json", "`size` must be a list of three numbers"), ["m.ply"]),
-    "cage pinned_vertices out of range": lambda b, t: (_bent(b, t, _cage_file(t, **_cage_arrays(b), pinned_vertices=np.array([0, 10**6]))),
-                                                       ("bad_cage.npz", "pinned_vertices"), ["frames"]),
-    "extract --pick nan": lambda b, t: (["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--pick", "nan", "0", "0"],
-                                        ("--pick", "nan"), ["m.ply"]),
-    "cage --region not JSON": lambda b, t: (_cage_cmd(b, t, None, "--region", _region_file(t, "[1, 2")),
-                                            ("region.json", "not valid JSON"), ["cage.npz"]),
+    "extract --region missing file": lambda b, t: (
+        _extract_in(b, t, None),
+        ("missing.json", "does not exist"),
+        ["m.ply"],
+    ),
+    "extract --region not JSON": lambda b, t: (
+        _extract_in(b, t, "{center: 1"),
+        ("region.json", "not valid JSON"),
+        ["m.ply"],
+    ),
+    "extract --region zero size": lambda b, t: (
+        _extract_in(b, t, {**UNIT_REGION, "size": [1, 0, 1]}),
+        ("region.json", "degenerate"),
+        ["m.ply"],
+    ),
+    "extract --region without rotation": lambda b, t: (
+        _extract_in(b, t, {"center": [0, 0, 0], "size": [1, 1, 1]}),
+        ("region.json", "rotation_euler"),
+        ["m.ply"],
+    ),
+    "extract --region outside the box": lambda b, t: (
+        _extract_in(b, t, {**UNIT_REGION, "center": [5, 0, 0]}),
+        ("lies outside the NeRF's box",),
+        ["m.ply"],
+    ),
+    "extract --region with nothing dense": lambda b, t: (
+        _extract_in(b, t, UNIT_REGION, "--threshold", "1e30"),
+        ("largest density", "region centred at (0, 0, 0)"),
+        ["m.ply"],
+    ),
+    "extract --region size of the wrong type": lambda b, t: (
+        _extract_in(b, t, {**UNIT_REGION, "size": "big"}),
+        ("region.json", "`size` must be a list of three numbers"),
+        ["m.ply"],
+    ),
+    "cage pinned_vertices out of range": lambda b, t: (
+        _bent(b, t, _cage_file(t, **_cage_arrays(b), pinned_vertices=np.array([0, 10**6]))),
+        ("bad_cage.npz", "pinned_vertices"),
+        ["frames"],
+    ),
+    "extract --pick nan": lambda b, t: (
+        ["extract", "--nerf", b["ckpt"], "--out", t / "m.ply", "--pick", "nan", "0", "0"],
+        ("--pick", "nan"),
+        ["m.ply"],
+    ),
+    "cage --region not JSON": lambda b, t: (
+        _cage_cmd(b, t, None, "--region", _region_file(t, "[1, 2")),
+        ("region.json", "not valid JSON"),
+        ["cage.npz"],
+    ),
     # --- the volume path (issue 51): huge poses, boxes too small for OpenVDB's voxels, what is in the way
     "bake-volume pose of huge coordinates (extent cage)": lambda b, t: (
         _bake(b, t, "--cage", b["cage"], "--deformed", _pose_file(b, t, "huge.npy", 1e300), "--extent", "cage"),
-        ("huge.npy", "vertex 0", "1e+09"), ["vol"]),
+        ("huge.npy", "vertex 0", "1e+09"),
+        ["vol"],
+    ),
     "bake-volume pose of 1e20 coordinates": lambda b, t: (
-        _bake(b, t, "--cage", b["cage"], "--deformed", _pose_file(b, t, "far.npy", 1.0, 1e20)), ("far.npy", "1e+09"), ["vol"]),
+        _bake(b, t, "--cage", b["cage"], "--deformed", _pose_file(b, t, "far.npy", 1.0, 1e20)),
+        ("far.npy", "1e+09"),
+        ["vol"],
+    ),
     "bake-volume second pose of huge coordinates": lambda b, t: (
-        _bake(b, t, "--cage", b["cage"], "--deformed", _poses_folder(b, t, 1.0, 1e200)), ("p2.npy", "1e+09"), ["vol"]),
-    "render pose of huge coordinates": lambda b, t: (_bent(b, t, b["cage"], _pose_file(b, t, "huge.npy", 1e300)),
-                                                    ("huge.npy", "1e+09"), ["frames"]),
-    "cage of huge coordinates": lambda b, t: (_bent(b, t, _cage_file(t, vertices=np.load(b["rest"]) * 1e15,
-                                                                      tets=_cage_arrays(b)["tets"])),
-                                              ("bad_cage.npz", "1e+09"), ["frames"]),
+        _bake(b, t, "--cage", b["cage"], "--deformed", _poses_folder(b, t, 1.0, 1e200)),
+        ("p2.npy", "1e+09"),
+        ["vol"],
+    ),
+    "render pose of huge coordinates": lambda b, t: (
+        _bent(b, t, b["cage"], _pose_file(b, t, "huge.npy", 1e300)),
+        ("huge.npy", "1e+09"),
+        ["frames"],
+    ),
+    "cage of huge coordinates": lambda b, t: (
+        _bent(b, t, _cage_file(t, vertices=np.load(b["rest"]) * 1e15, tets=_cage_arrays(b)["tets"])),
+        ("bad_cage.npz", "1e+09"),
+        ["frames"],
+    ),
     "bake-volume region too small for one voxel": lambda b, t: (
         _bake(b, t, "--region", _region_file(t, {**UNIT_REGION, "size": [1e-6, 1e-6, 2e-6]})),
-        ("1e-06 x 1e-06 x 2e-06", "too small for one voxel"), ["vol"]),
+        ("1e-06 x 1e-06 x 2e-06", "too small for one voxel"),
+        ["vol"],
+    ),
     "bake-volume region of voxels below OpenVDB's": lambda b, t: (
         _bake(b, t, "--region", _region_file(t, {**UNIT_REGION, "size": [1e-3, 5e-4, 5e-4]}), "--resolution", "256"),
-        ("resolution 256", "at most 50"), ["vol"]),
+        ("resolution 256", "at most 50"),
+        ["vol"],
+    ),
     "bake-volume region of a NaN size": lambda b, t: (
-        _bake(b, t, "--region", _region_file(t, '{"center": [0, 0, 0], "size": [NaN, 1, 1], "rotation_euler": [0, 0, 0]}')),
-        ("region.json", "`size` must be finite"), ["vol"]),
+        _bake(
+            b, t, "--region", _region_file(t, '{"center": [0, 0, 0], "size": [NaN, 1, 1], "rotation_euler": [0, 0, 0]}')
+        ),
+        ("region.json", "`size` must be finite"),
+        ["vol"],
+    ),
     "bake-volume a folder where the second volume goes": lambda b, t: (
-        _bake_two_poses_past(b, t, "p2.npz", folder=True), ("p2.npz", "it is a folder"), ["vol/p1.npz"]),
+        _bake_two_poses_past(b, t, "p2.npz", folder=True),
+        ("p2.npz", "it is a folder"),
+        ["vol/p1.npz"],
+    ),
     "bake-volume a file of the user's where a volume goes": lambda b, t: (
-        _bake_two_poses_past(b, t, "p1.npz"), ("p1.npz", "is not a baked volume", "left alone"), ["vol/p2.npz"]),
+        _bake_two_poses_past(b, t, "p1.npz"),
+        ("p1.npz", "is not a baked volume", "left alone"),
+        ["vol/p2.npz"],
+    ),
     "bake-volume --out is a file": lambda b, t: (_bake_into_a_file(b, t), ("vol", "not a folder"), []),
     # kin of the above, found later: text for a pose, a box far larger than the NeRF (an empty volume, exit 0,
     # before), a pipe where a volume goes or as the pose (a read that never returned), a link to nowhere
     "bake-volume pose of text": lambda b, t: (
-        _bake(b, t, "--cage", b["cage"], "--deformed", _text_pose(b, t)), ("text.npy", "array of <U", "not numbers"),
-        ["vol"]),
+        _bake(b, t, "--cage", b["cage"], "--deformed", _text_pose(b, t)),
+        ("text.npy", "array of <U", "not numbers"),
+        ["vol"],
+    ),
     "bake-volume region far larger than the NeRF": lambda b, t: (
         _bake(b, t, "--region", _region_file(t, {**UNIT_REGION, "size": [1e300, 1e300, 1]})),
-        ("1e+300 x 1e+300 x 1", "larger than the NeRF's whole box"), ["vol"]),
+        ("1e+300 x 1e+300 x 1", "larger than the NeRF's whole box"),
+        ["vol"],
+    ),
     "bake-volume a pipe where the volume goes": lambda b, t: (
-        [*_bake(b, t)] if _pipe(t / "vol" / "rest.npz") else None, ("rest.npz", "not a file", "left alone"), []),
+        [*_bake(b, t)] if _pipe(t / "vol" / "rest.npz") else None,
+        ("rest.npz", "not a file", "left alone"),
+        [],
+    ),
     "bake-volume pose that is a pipe": lambda b, t: (
-        _bake(b, t, "--cage", b["cage"], "--deformed", _pipe(t / "pose.npy")), ("pose.npy", "not a file"), ["vol"]),
+        _bake(b, t, "--cage", b["cage"], "--deformed", _pipe(t / "pose.npy")),
+        ("pose.npy", "not a file"),
+        ["vol"],
+    ),
     "bake-volume --out a link to nowhere": lambda b, t: (
-        _bake(b, t, out="vol/sub") if _link_to_nowhere(t) else None, ("vol is a symbolic link", "does not exist"), []),
+        _bake(b, t, out="vol/sub") if _link_to_nowhere(t) else None,
+        ("vol is a symbolic link", "does not exist"),
+        [],
+    ),
     "prepare whose first photo has another size": lambda b, t: (
         ["prepare", "--images", _photos(t, [(48, 32), (32, 32), (32, 32), (32, 32)]), "--out", t / "dataset"],
-        ("a.png is 48x32", "3 of the 4 photos are 32x32"), ["dataset"]),
+        ("a.png is 48x32", "3 of the 4 photos are 32x32"),
+        ["dataset"],
+    ),
     "prepare with photos of three sizes": lambda b, t: (
         ["prepare", "--images", _photos(t, [(32, 32), (32, 32), (40, 30), (32, 32), (30, 40)]), "--out", t / "dataset"],
-        ("c.png is 40x30", "e.png is 30x40", "3 of the 5 photos are 32x32"), ["dataset"]),
+        ("c.png is 40x30", "e.png is 30x40", "3 of the 5 photos are 32x32"),
+        ["dataset"],
+    ),
     # --- unclear messages before
-    "cage npz of random bytes": lambda b, t: (_bent(b, t, _random_cage(t)), ("random.npz", "not a cage file"), ["frames"]),
-    "collapsed pose": lambda b, t: (_bent(b, t, b["cage"], _collapsed_pose(b, t)), ("collapsed.npy", "collapsed the cage"), ["frames"]),
+    "cage npz of random bytes": lambda b, t: (
+        _bent(b, t, _random_cage(t)),
+        ("random.npz", "not a cage file"),
+        ["frames"],
+    ),
+    "collapsed pose": lambda b, t: (
+        _bent(b, t, b["cage"], _collapsed_pose(b, t)),
+        ("collapsed.npy", "collapsed the cage"),
+        ["frames"],
+    ),
 }
 
 
@@ -513,14 +759,34 @@ def _wait_for_exit(proc, timeout=240):
     except subprocess.TimeoutExpired:
         proc.kill()
         _, err = proc.communicate()
-        raise AssertionError(f"train did not exit {timeout} s after Ctrl-C; its stderr ends: {(err or '')[-2000:]}") from None
+        raise AssertionError(
+            f"train did not exit {timeout} s after Ctrl-C; its stderr ends: {(err or '')[-2000:]}"
+        ) from None
 
 
 def test_a_second_train_on_one_folder_is_refused_and_a_dead_ones_lock_is_not(base, tmp_path):
     run = tmp_path / "run"
-    first = subprocess.Popen([*ENGINE, "train", "--data", str(base["data"]), "--out", str(run), "--max-seconds", LONG_RUN_S,
-                              "--checkpoint-every", "0.2", "--device", "cpu"], cwd=REPO, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True, **_ctrl_c_reaches_the_child())
+    first = subprocess.Popen(
+        [
+            *ENGINE,
+            "train",
+            "--data",
+            str(base["data"]),
+            "--out",
+            str(run),
+            "--max-seconds",
+            LONG_RUN_S,
+            "--checkpoint-every",
+            "0.2",
+            "--device",
+            "cpu",
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        **_ctrl_c_reaches_the_child(),
+    )
     try:
         deadline = time.time() + START_WAIT_S
         while not (run / "nerf.ckpt").exists() and first.poll() is None and time.time() < deadline:
@@ -535,9 +801,17 @@ def test_a_second_train_on_one_folder_is_refused_and_a_dead_ones_lock_is_not(bas
     assert _files(run) == {"nerf.ckpt"}  # saved on Ctrl-C, lock released and removed
 
     # A holder killed with SIGKILL leaves its lock file; the kernel's lock died with it.
-    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDWR | "
-                               "os.O_CREAT); fcntl.flock(fd, fcntl.LOCK_EX); print('locked', flush=True); time.sleep(60)",
-                               str(run / ".train.lock")], stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDWR | "
+            "os.O_CREAT); fcntl.flock(fd, fcntl.LOCK_EX); print('locked', flush=True); time.sleep(60)",
+            str(run / ".train.lock"),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert holder.stdout.readline().strip() == "locked"
     holder.kill()
     holder.wait()
@@ -562,9 +836,27 @@ def test_ctrl_c_twice_during_the_final_save_keeps_a_whole_checkpoint(base, tmp_p
     import torch
 
     run = tmp_path / "run"
-    proc = subprocess.Popen([*ENGINE, "train", "--data", str(base["data"]), "--out", str(run), "--max-seconds", LONG_RUN_S,
-                             "--checkpoint-every", "0.2", "--device", "cpu"], cwd=REPO, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, **_ctrl_c_reaches_the_child())
+    proc = subprocess.Popen(
+        [
+            *ENGINE,
+            "train",
+            "--data",
+            str(base["data"]),
+            "--out",
+            str(run),
+            "--max-seconds",
+            LONG_RUN_S,
+            "--checkpoint-every",
+            "0.2",
+            "--device",
+            "cpu",
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        **_ctrl_c_reaches_the_child(),
+    )
     try:
         deadline = time.time() + START_WAIT_S
         while not (run / "nerf.ckpt").exists() and proc.poll() is None and time.time() < deadline:
@@ -641,7 +933,9 @@ def _png16(path: Path, arr: np.ndarray, colour_type: int) -> None:
         return struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(tag + body) & 0xFFFFFFFF)
 
     ihdr = struct.pack(">IIBBBBB", w, h, 16, colour_type, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    )
 
 
 def _grey(mode):
@@ -657,8 +951,10 @@ def _grey(mode):
         elif mode == "1":
             Image.new("1", (4, 4), 1).save(path)
         else:
-            Image.new(mode, (4, 4), {"L": 128, "LA": (128, 255), "RGB": (128, 128, 128),
-                                     "RGBA": (128, 128, 128, 255)}[mode]).save(path)
+            Image.new(
+                mode, (4, 4), {"L": 128, "LA": (128, 255), "RGB": (128, 128, 128), "RGBA": (128, 128, 128, 255)}[mode]
+            ).save(path)
+
     return make
 
 
@@ -702,20 +998,27 @@ def test_float_images_are_refused_clearly(base, tmp_path):
 
 # ------------------------------------------------------------------------------- disk full
 
+
 def _unshare_works() -> bool:
     if shutil.which("unshare") is None:
         return False
     try:
-        return subprocess.run(["unshare", "-rm", "sh", "-c", "mount -t tmpfs -o size=64k tmpfs /tmp"],
-                              capture_output=True, timeout=30).returncode == 0
+        return (
+            subprocess.run(
+                ["unshare", "-rm", "sh", "-c", "mount -t tmpfs -o size=64k tmpfs /tmp"], capture_output=True, timeout=30
+            ).returncode
+            == 0
+        )
     except (OSError, subprocess.TimeoutExpired):
         return False
 
 
 # In a private mount namespace (gone when the command ends): a tiny tmpfs at $0, filled up, then the
 # command; finally what is left on it, so the test can see that nothing half-written stayed.
-_ON_A_FULL_DISK = ('mount -t tmpfs -o size=128k tmpfs "$0" && (head -c 1M /dev/zero > "$0/fill") 2>/dev/null; '
-                   '"$@"; rc=$?; echo "LEFT:$(ls -A "$0" | tr "\\n" " ")"; exit $rc')
+_ON_A_FULL_DISK = (
+    'mount -t tmpfs -o size=128k tmpfs "$0" && (head -c 1M /dev/zero > "$0/fill") 2>/dev/null; '
+    '"$@"; rc=$?; echo "LEFT:$(ls -A "$0" | tr "\\n" " ")"; exit $rc'
+)
 
 
 @pytest.mark.skipif(not _unshare_works(), reason="needs `unshare -rm` and tmpfs mounts (user namespaces)")
@@ -724,13 +1027,28 @@ def test_a_full_disk_is_one_error_line_naming_the_file(base, tmp_path, command):
     disk = tmp_path / "disk"
     disk.mkdir()
     if command == "render":
-        args = ["render", "--nerf", base["ckpt"], "--cameras", base["cameras"], "--out", disk / "frames", "--device", "cpu"]
+        args = [
+            "render",
+            "--nerf",
+            base["ckpt"],
+            "--cameras",
+            base["cameras"],
+            "--out",
+            disk / "frames",
+            "--device",
+            "cpu",
+        ]
         needle = "frames"
     else:
         args = ["train", "--data", base["data"], "--out", disk / "run", "--steps", "2", "--device", "cpu"]
         needle = "nerf.ckpt"
-    proc = subprocess.run(["unshare", "-rm", "sh", "-c", _ON_A_FULL_DISK, str(disk), *ENGINE, *map(str, args)],
-                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        ["unshare", "-rm", "sh", "-c", _ON_A_FULL_DISK, str(disk), *ENGINE, *map(str, args)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     _assert_one_error(proc, needle)
     assert "disk is full" in proc.stderr
     assert proc.stdout.strip().splitlines()[-1].split() == ["LEFT:fill"], proc.stdout
@@ -766,7 +1084,9 @@ print("ok")
 
 
 def test_kernels_survive_non_finite_and_out_of_range_coordinates():
-    proc = subprocess.run([sys.executable, "-c", _KERNELS_ON_NAN], cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", _KERNELS_ON_NAN], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", f"exit {proc.returncode}\n{proc.stderr[-3000:]}"
 
 
@@ -804,12 +1124,25 @@ def test_a_bake_failing_at_its_second_pose_leaves_nothing_and_names_the_log_of_i
     poses = _poses_folder(base, tmp_path, 1.0, 1.1)
     logs = tmp_path / "logs"
     for out in ("vol", "new/sub"):
-        proc = subprocess.run([sys.executable, "-c", _SECOND_BAKE_FAILS, *map(str, _bake(base, tmp_path, "--cage", base["cage"],
-                              "--deformed", poses, out=out))], cwd=REPO, capture_output=True, text=True, timeout=300,
-                              env={**os.environ, "NERF_DEFORM_LOG_DIR": str(logs)})
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                _SECOND_BAKE_FAILS,
+                *map(str, _bake(base, tmp_path, "--cage", base["cage"], "--deformed", poses, out=out)),
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, "NERF_DEFORM_LOG_DIR": str(logs)},
+        )
         assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
         errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-        assert len(errors) == 1 and "bake-volume: unexpected error (ZeroDivisionError: a bug in the second bake)" in errors[0]
+        assert (
+            len(errors) == 1
+            and "bake-volume: unexpected error (ZeroDivisionError: a bug in the second bake)" in errors[0]
+        )
         log = Path(errors[0].split("its traceback is in ", 1)[1].split(": please report it")[0])
         assert log.parent == logs and "Traceback (most recent call last)" in log.read_text()
     assert _files(vol) == {"p1.npz", "notes.txt"} and (vol / "p1.npz").read_bytes() == before
@@ -853,9 +1186,19 @@ def test_a_bake_killed_by_sigterm_or_sighup_leaves_nothing(base, tmp_path, signu
     as for Ctrl-C (by default Python dies at once, leaving `.p1.npz.*.tmp` and its folders)."""
     poses = _poses_folder(base, tmp_path, *([1.0] * 8))
     out = tmp_path / "new" / "vol"
-    proc = subprocess.Popen([*ENGINE, *map(str, _bake(base, tmp_path, "--cage", base["cage"], "--deformed", poses,
-                                                      "--resolution", "64", out="new/vol"))],
-                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            *ENGINE,
+            *map(
+                str,
+                _bake(base, tmp_path, "--cage", base["cage"], "--deformed", poses, "--resolution", "64", out="new/vol"),
+            ),
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.time() + START_WAIT_S
         while not list(out.glob(".p1.npz.*.tmp")) and proc.poll() is None and time.time() < deadline:

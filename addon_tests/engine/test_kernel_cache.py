@@ -9,8 +9,9 @@ import shutil
 import subprocess
 import sys
 
-from blender_nerf_deform.engine import kernel_cache
 from fixtures import REPO
+
+from blender_nerf_deform.engine import kernel_cache
 
 # One cheap kernel (no torch): the lazy Adam, run on a 4x2 table.
 _RUN_ADAM = """
@@ -29,8 +30,9 @@ def _run_adam(cwd, cache):
     else:
         env["NUMBA_CACHE_DIR"] = str(cache)
     env.pop("PYTHONPATH", None)  # the package is found in cwd: the copy there, not the repository
-    proc = subprocess.run([sys.executable, "-c", _RUN_ADAM], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", _RUN_ADAM], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.stdout + proc.stderr
 
@@ -50,12 +52,15 @@ def test_every_kernel_module_is_a_kernel_file_that_imports_only_its_stage():
                     if node.level == 1:  # the same stage: only its kernel files (Triton's hold no numba cache)
                         assert name.endswith(("_kernels", "_triton")), f"{path.name} imports .{name}"
                     else:
-                        assert node.level == 2 and name in ("backend", "kernel_cache"), \
+                        assert node.level == 2 and name in ("backend", "kernel_cache"), (
                             f"{path.name} imports {'.' * node.level}{name}"
+                        )
 
 
 def _copy_engine(to):
-    shutil.copytree(REPO / "blender_nerf_deform", to / "blender_nerf_deform", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(
+        REPO / "blender_nerf_deform", to / "blender_nerf_deform", ignore=shutil.ignore_patterns("__pycache__")
+    )
     return to / "blender_nerf_deform" / "engine"
 
 

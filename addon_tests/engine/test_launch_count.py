@@ -23,9 +23,15 @@ def test_scalar_reads_data_dependent_shapes_and_boolean_indexing_are_syncs():
     with LaunchCounter() as c:
         float(x.sum())
     assert c.syncs == 1  # the read; the sum is a launch, not a sync
-    for op in (lambda: torch.nonzero(mask), lambda: x[mask], lambda: torch.bincount(counts),
-               lambda: torch.unique(counts), lambda: torch.repeat_interleave(counts), lambda: bool(mask.any()),
-               lambda: x.masked_select(mask)):
+    for op in (
+        lambda: torch.nonzero(mask),
+        lambda: x[mask],
+        lambda: torch.bincount(counts),
+        lambda: torch.unique(counts),
+        lambda: torch.repeat_interleave(counts),
+        lambda: bool(mask.any()),
+        lambda: x.masked_select(mask),
+    ):
         with LaunchCounter() as c:
             op()
         assert c.syncs >= 1, op

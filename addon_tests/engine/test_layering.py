@@ -3,9 +3,9 @@
 import shutil
 from pathlib import Path
 
-from tools.check_layering import violations as check
-
 from fixtures import REPO
+
+from tools.check_layering import violations as check
 
 
 def violations(root: Path, addon_layers=None) -> list[str]:
@@ -34,7 +34,9 @@ def test_checker_catches_an_addon_import_from_a_higher_layer(tmp_path):
     root = _fake_package(tmp_path)
     _write(root, "addon/data/store.py", "")
     _write(root, "addon/ui/panel.py", "from ..data.store import prop\n")  # ui -> data: down, allowed
-    _write(root, "addon/edit/ops.py", "from ..data import store\n\ndef f():\n    from ..ui.panel import draw\n")  # edit -> ui: up
+    _write(
+        root, "addon/edit/ops.py", "from ..data import store\n\ndef f():\n    from ..ui.panel import draw\n"
+    )  # edit -> ui: up
     (problem,) = violations(root, LAYERS)
     assert "addon/edit/ops.py:4" in problem and "(edit) imports" in problem and "(ui)" in problem
 
@@ -58,7 +60,9 @@ def test_checker_catches_an_upward_import_planted_in_the_project(tmp_path):
     properties = root / "addon" / "data" / "properties.py"
     properties.write_text(properties.read_text() + "\n\ndef _planted():\n    from ..render.frame import nerf_pose\n")
     problems = check(root)
-    assert any("addon/data/properties.py:" in p and "(data) imports" in p and "frame (render)" in p for p in problems), problems
+    assert any(
+        "addon/data/properties.py:" in p and "(data) imports" in p and "frame (render)" in p for p in problems
+    ), problems
     assert any("import cycle in addon/" in p for p in problems), problems  # render's modules import properties
 
 
@@ -169,7 +173,12 @@ def test_engine_tests_never_import_blender():
     found = []
     for path in sorted((REPO / "addon_tests" / "engine").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom) and node.level == 0
+                else []
+            )
             found += [f"{path.name}:{node.lineno} {n}" for n in names if n.split(".")[0] in BLENDER_MODULES]
     assert found == []

@@ -48,11 +48,15 @@ def test_fisheye_sees_past_ninety_degrees():
 def test_pinhole_directions_are_the_design_cards():
     i, j = torch.tensor([0.5, 10.5]), torch.tensor([0.5, 3.5])
     d = camera_directions(50.0, 40.0, 8.0, 6.0, i, j, None)
-    assert torch.allclose(d, torch.tensor([[(0.5 - 8) / 50, -(0.5 - 6) / 40, -1.0], [(10.5 - 8) / 50, -(3.5 - 6) / 40, -1.0]]))
+    assert torch.allclose(
+        d, torch.tensor([[(0.5 - 8) / 50, -(0.5 - 6) / 40, -1.0], [(10.5 - 8) / 50, -(3.5 - 6) / 40, -1.0]])
+    )
     # A distorted camera's ray through a pixel points where the lens maps that pixel from.
     dd = camera_directions(50.0, 40.0, 8.0, 6.0, i, j, FOX).double()
     xd, yd = distort(FOX, -dd[:, 0] / dd[:, 2], dd[:, 1] / dd[:, 2])  # back to OpenCV axes, then distort
-    assert np.allclose(xd.numpy(), ((i - 8) / 50).numpy(), atol=1e-6) and np.allclose(yd.numpy(), ((j - 6) / 40).numpy(), atol=1e-6)
+    assert np.allclose(xd.numpy(), ((i - 8) / 50).numpy(), atol=1e-6) and np.allclose(
+        yd.numpy(), ((j - 6) / 40).numpy(), atol=1e-6
+    )
 
 
 def test_unknown_lens_model_is_refused():

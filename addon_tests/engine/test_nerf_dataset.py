@@ -7,13 +7,12 @@ import sys
 
 import numpy as np
 import pytest
-from PIL import Image
-
-from blender_nerf_deform.engine.nerf.dataset import load_dataset
-from blender_nerf_deform.engine.errors import EngineError
-
 from fixtures import REPO, SHARED_DATASETS
 from fixtures.sphere_data import look_at, write_sphere_dataset
+from PIL import Image
+
+from blender_nerf_deform.engine.errors import EngineError
+from blender_nerf_deform.engine.nerf.dataset import load_dataset
 
 
 def _write(folder, meta, images=None, size=(8, 6), mode="RGBA"):
@@ -41,8 +40,16 @@ def test_nerf_synthetic_form(tmp_path):
 
 
 def test_instant_ngp_form_with_per_frame_intrinsics_rgb_and_jpg(tmp_path):
-    meta = {"fl_x": 10.0, "fl_y": 12.0, "cx": 4.5, "cy": 2.5, "w": 8, "h": 6, "aabb_scale": 2,
-            "frames": [_frame("a.jpg"), {**_frame("b.png"), "fl_x": 20.0}]}
+    meta = {
+        "fl_x": 10.0,
+        "fl_y": 12.0,
+        "cx": 4.5,
+        "cy": 2.5,
+        "w": 8,
+        "h": 6,
+        "aabb_scale": 2,
+        "frames": [_frame("a.jpg"), {**_frame("b.png"), "fl_x": 20.0}],
+    }
     folder = _write(tmp_path, meta, ["b.png"], mode="RGB")
     Image.new("RGB", (8, 6), (10, 20, 30)).save(tmp_path / "a.jpg")
     ds = load_dataset(folder)
@@ -78,7 +85,9 @@ def test_downscale_box_filters_premultiplied_and_scales_intrinsics(tmp_path):
     img[:1, 3] = (0, 0, 255, 255)
     tmp_path.mkdir(exist_ok=True)
     Image.fromarray(img, "RGBA").save(tmp_path / "i.png")
-    (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 6.0, "cx": 3.0, "cy": 2.0, "frames": [_frame("i.png")]}))
+    (tmp_path / "transforms.json").write_text(
+        json.dumps({"fl_x": 6.0, "cx": 3.0, "cy": 2.0, "frames": [_frame("i.png")]})
+    )
     ds = load_dataset(tmp_path, downscale=2)
     assert ds.images.shape == (1, 2, 3, 4)
     cam = ds.cameras[0]
@@ -98,28 +107,54 @@ def _expect(tmp_path, meta, match, images=(), **kw):
 
 def test_bad_datasets_each_get_a_clear_error(tmp_path):
     ok = {"camera_angle_x": 0.7, "frames": [_frame("a.png")]}
-    _expect(tmp_path / "1", {**ok, "frames": [_frame("missing.png")]}, r"none of its 1 frames has an image file.*missing\.png")
+    _expect(
+        tmp_path / "1",
+        {**ok, "frames": [_frame("missing.png")]},
+        r"none of its 1 frames has an image file.*missing\.png",
+    )
     _expect(tmp_path / "2", {"camera_angle_x": 0.7}, r"missing key `frames`")
     _expect(tmp_path / "3", {**ok, "frames": []}, r"`frames` is empty")
-    _expect(tmp_path / "4", {"frames": [_frame("a.png")]}, r"frames\[0\]: missing key `camera_angle_x` or `fl_x`", ["a.png"])
-    _expect(tmp_path / "5", {**ok, "frames": [{"file_path": "a.png"}]}, r"frames\[0\]: missing key `transform_matrix`", ["a.png"])
+    _expect(
+        tmp_path / "4", {"frames": [_frame("a.png")]}, r"frames\[0\]: missing key `camera_angle_x` or `fl_x`", ["a.png"]
+    )
+    _expect(
+        tmp_path / "5",
+        {**ok, "frames": [{"file_path": "a.png"}]},
+        r"frames\[0\]: missing key `transform_matrix`",
+        ["a.png"],
+    )
     bad = np.eye(4)
     bad[0, 3] = np.nan
-    _expect(tmp_path / "6", {**ok, "frames": [{"file_path": "a.png", "transform_matrix": [[1, 0, 0, "NaN"]] * 4}]},
-            r"non-finite|not a 4x4", ["a.png"])
-    _expect(tmp_path / "6b", {**ok, "frames": [{"file_path": "a.png", "transform_matrix": np.where(np.isnan(bad), 1e400, bad).tolist()}]},
-            r"frames\[0\]: `transform_matrix` has non-finite values", ["a.png"])
+    _expect(
+        tmp_path / "6",
+        {**ok, "frames": [{"file_path": "a.png", "transform_matrix": [[1, 0, 0, "NaN"]] * 4}]},
+        r"non-finite|not a 4x4",
+        ["a.png"],
+    )
+    _expect(
+        tmp_path / "6b",
+        {**ok, "frames": [{"file_path": "a.png", "transform_matrix": np.where(np.isnan(bad), 1e400, bad).tolist()}]},
+        r"frames\[0\]: `transform_matrix` has non-finite values",
+        ["a.png"],
+    )
     _expect(tmp_path / "7", {**ok, "frames": [{"transform_matrix": np.eye(4).tolist()}]}, r"missing key `file_path`")
     (tmp_path / "8").mkdir()
     Image.new("RGBA", (8, 6)).save(tmp_path / "8" / "a.png")
     Image.new("RGBA", (8, 7)).save(tmp_path / "8" / "b.png")
-    msg = _expect(tmp_path / "8", {**ok, "frames": [_frame("a.png"), _frame("b.png")]}, r"b\.png: image is 8x7.*same size")
+    msg = _expect(
+        tmp_path / "8", {**ok, "frames": [_frame("a.png"), _frame("b.png")]}, r"b\.png: image is 8x7.*same size"
+    )
     (tmp_path / "9").mkdir()
     (tmp_path / "9" / "a.png").write_bytes(b"not a png")
     _expect(tmp_path / "9", ok, r"a\.png: cannot read image")
     _expect(tmp_path / "10", {**ok, "camera_model": "FOV"}, r"camera_model 'FOV' is not supported", ["a.png"])
     _expect(tmp_path / "10b", {**ok, "k4": 0.1}, r"`k4` = 0.1 belongs to the fisheye model", ["a.png"])
-    _expect(tmp_path / "10c", {**ok, "camera_model": "PINHOLE", "k1": 0.2}, r"camera_model PINHOLE has no distortion", ["a.png"])
+    _expect(
+        tmp_path / "10c",
+        {**ok, "camera_model": "PINHOLE", "k1": 0.2},
+        r"camera_model PINHOLE has no distortion",
+        ["a.png"],
+    )
     (tmp_path / "11").mkdir()
     (tmp_path / "11" / "transforms.json").write_text("{ not json")
     with pytest.raises(EngineError, match=r"transforms\.json: not valid JSON"):
@@ -134,8 +169,14 @@ def test_cli_reports_bad_input_in_one_line_and_exit_2(tmp_path):
     env_cmd = [sys.executable, "-m", "blender_nerf_deform.engine"]
     _write(tmp_path / "d", {"camera_angle_x": 0.7, "frames": [_frame("gone.png")]})
     for args, needle in [
-        (["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "run"), "--steps", "1"], "frames has an image file (first: "),
-        (["eval", "--nerf", str(tmp_path / "none.ckpt"), "--data", str(tmp_path / "d")], "none.ckpt: checkpoint not found"),
+        (
+            ["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "run"), "--steps", "1"],
+            "frames has an image file (first: ",
+        ),
+        (
+            ["eval", "--nerf", str(tmp_path / "none.ckpt"), "--data", str(tmp_path / "d")],
+            "none.ckpt: checkpoint not found",
+        ),
     ]:
         proc = subprocess.run(env_cmd + args, cwd=REPO, capture_output=True, text=True)
         assert proc.returncode == 2, proc.stderr
@@ -173,12 +214,25 @@ def test_instant_ngp_distortion_keys_become_the_cameras_lens(tmp_path):
 
     (tmp_path / "a.png").parent.mkdir(exist_ok=True)
     Image.new("RGB", (8, 6)).save(tmp_path / "a.png")
-    base = {"fl_x": 7.0, "fl_y": 7.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6,
-            "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}]}
-    for extra, lens in (({"k1": 0.1, "k2": -0.02, "p1": 0.001, "p2": 0.002}, Distortion("opencv", k1=0.1, k2=-0.02, p1=0.001, p2=0.002)),
-                        ({"is_fisheye": True, "k1": 0.05, "k4": 0.001}, Distortion("fisheye", k1=0.05, k4=0.001)),
-                        ({"camera_model": "OPENCV_FISHEYE", "k1": 0.05}, Distortion("fisheye", k1=0.05)),
-                        ({"camera_model": "OPENCV"}, None), ({}, None)):
+    base = {
+        "fl_x": 7.0,
+        "fl_y": 7.0,
+        "cx": 4.0,
+        "cy": 3.0,
+        "w": 8,
+        "h": 6,
+        "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}],
+    }
+    for extra, lens in (
+        (
+            {"k1": 0.1, "k2": -0.02, "p1": 0.001, "p2": 0.002},
+            Distortion("opencv", k1=0.1, k2=-0.02, p1=0.001, p2=0.002),
+        ),
+        ({"is_fisheye": True, "k1": 0.05, "k4": 0.001}, Distortion("fisheye", k1=0.05, k4=0.001)),
+        ({"camera_model": "OPENCV_FISHEYE", "k1": 0.05}, Distortion("fisheye", k1=0.05)),
+        ({"camera_model": "OPENCV"}, None),
+        ({}, None),
+    ):
         (tmp_path / "transforms.json").write_text(json.dumps({**base, **extra}))
         assert load_dataset(tmp_path).cameras[0].distortion == lens, extra
     # Per-frame keys override the top level (instant-ngp and nerfstudio both allow it).
@@ -218,8 +272,23 @@ def test_a_distorted_capture_evaluates_like_its_pinhole_original(sphere_nerf, tm
     (ignored / "transforms.json").write_text(json.dumps(meta))
 
     def score(folder):
-        proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "eval", "--nerf", str(ckpt),
-                               "--data", str(folder), "--device", "cpu"], cwd=REPO, capture_output=True, text=True)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "blender_nerf_deform.engine",
+                "eval",
+                "--nerf",
+                str(ckpt),
+                "--data",
+                str(folder),
+                "--device",
+                "cpu",
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+        )
         assert proc.returncode == 0, proc.stderr[-2000:]
         return float(proc.stdout.strip().splitlines()[-1].split()[1])
 

@@ -25,8 +25,9 @@ def _code_path(request):
 
 def _encoding(path, **kw):
     torch.manual_seed(0)
-    enc = HashEncoding(**{"n_levels": 6, "n_features": 4, "log2_table_size": 12, "base_resolution": 4,
-                          "finest_resolution": 96, **kw})
+    enc = HashEncoding(
+        **{"n_levels": 6, "n_features": 4, "log2_table_size": 12, "base_resolution": 4, "finest_resolution": 96, **kw}
+    )
     with torch.no_grad():
         enc.table.uniform_(-1, 1)
     return enc
@@ -82,7 +83,9 @@ def test_position_gradient_matches_the_reference_and_finite_differences(path):
     assert torch.allclose(xa.grad[5:], xr.grad[5:], rtol=1e-3, atol=2e-2), (xa.grad - xr.grad).abs().max()
     assert torch.all(xa.grad[:5, 0] == 0) and torch.all(xa.grad[:5, 1:] != 0)
     # Central differences of the float64 reference, away from the cell faces of every level.
-    table64 = [t.detach().double() for t in (enc.table[int(o): int(o) + s] for o, s in zip(enc.offsets, enc.level_sizes))]
+    table64 = [
+        t.detach().double() for t in (enc.table[int(o) : int(o) + s] for o, s in zip(enc.offsets, enc.level_sizes))
+    ]
     pts = x[5:25].double()
     h = 1e-7
     for axis in range(3):

@@ -5,14 +5,13 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from blender_nerf_deform.engine.nerf.checkpoint import load_nerf, save_nerf
-from blender_nerf_deform.engine.errors import EngineError
-from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
-from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
-
 from fixtures.ball_model import ball_model
 from fixtures.sphere_data import look_at
+
+from blender_nerf_deform.engine.errors import EngineError
+from blender_nerf_deform.engine.nerf.checkpoint import load_nerf, save_nerf
+from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
+from blender_nerf_deform.engine.nerf.renderer import Camera, camera_rays, render_image, render_rays
 
 
 def _model(seed=0):
@@ -64,8 +63,9 @@ def test_render_image_rgba_is_straight_alpha_and_matches_render_rays():
     with torch.no_grad():
         ref = render_rays(m, o, d, background=(0.0, 1.0, 0.0))
     a = img["rgba"][..., 3:]
-    np.testing.assert_allclose(img["rgba"][..., :3] * a + (1 - a) * np.array([0, 1, 0]),
-                               ref["rgb"].numpy().reshape(24, 24, 3), atol=1e-5)
+    np.testing.assert_allclose(
+        img["rgba"][..., :3] * a + (1 - a) * np.array([0, 1, 0]), ref["rgb"].numpy().reshape(24, 24, 3), atol=1e-5
+    )
     hit = a[..., 0] > 0.5
     assert hit.any() and (img["depth"][hit] > 1.0).all() and (img["depth"][hit] < 6.0).all()
     assert img["density_samples_per_ray"] >= img["color_samples_per_ray"] > 0

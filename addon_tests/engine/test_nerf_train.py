@@ -8,6 +8,8 @@ import sys
 import numpy as np
 import pytest
 import torch
+from fixtures import REPO
+from fixtures.sphere_data import write_sphere_dataset
 from PIL import Image
 
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
@@ -17,9 +19,6 @@ from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.renderer import render_image
 from blender_nerf_deform.engine.nerf.substeps import FINAL_SUBSTEPS
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
-
-from fixtures import REPO
-from fixtures.sphere_data import write_sphere_dataset
 
 SMALL = {"log2_table_size": 14, "finest_resolution": 128, "occ_resolution": 32, "steps_per_diagonal": 256}
 
@@ -96,8 +95,13 @@ def test_the_torch_path_that_cuda_runs_trains_like_the_kernels(sphere, monkeypat
 
 
 def _cli(*args, check=True):
-    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     if check:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
@@ -140,8 +144,18 @@ def test_cli_train_resume_eval_render(sphere, tmp_path):
     with Image.open(one / "r_0.png") as im_one, Image.open(out / "r_0.png") as im_final:
         assert not np.array_equal(np.asarray(im_one), np.asarray(im_final))
     for bad in ("0", "17", "nan", "1.5"):  # each refused by the argument parser, before torch loads
-        proc = _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", one, "--substeps", bad,
-                    check=False)
+        proc = _cli(
+            "render",
+            "--nerf",
+            ckpt,
+            "--cameras",
+            test_dir / "transforms.json",
+            "--out",
+            one,
+            "--substeps",
+            bad,
+            check=False,
+        )
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert "argument --substeps: " in proc.stderr and bad in proc.stderr.splitlines()[-1], proc.stderr
 
@@ -150,11 +164,36 @@ def test_cli_train_resume_eval_render(sphere, tmp_path):
     with Image.open(half / "r_0.png") as im:
         assert im.size == (16, 16)
 
-    proc = _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", out,
-                "--cage", tmp_path / "c.npz", "--deformed", tmp_path / "v.npy", check=False)
-    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1] == f"error: cage file {tmp_path / 'c.npz'} does not exist"
-    proc = _cli("render", "--nerf", ckpt, "--cameras", test_dir / "transforms.json", "--out", out,
-                "--cage", tmp_path / "c.npz", check=False)
+    proc = _cli(
+        "render",
+        "--nerf",
+        ckpt,
+        "--cameras",
+        test_dir / "transforms.json",
+        "--out",
+        out,
+        "--cage",
+        tmp_path / "c.npz",
+        "--deformed",
+        tmp_path / "v.npy",
+        check=False,
+    )
+    assert (
+        proc.returncode == 2
+        and proc.stderr.strip().splitlines()[-1] == f"error: cage file {tmp_path / 'c.npz'} does not exist"
+    )
+    proc = _cli(
+        "render",
+        "--nerf",
+        ckpt,
+        "--cameras",
+        test_dir / "transforms.json",
+        "--out",
+        out,
+        "--cage",
+        tmp_path / "c.npz",
+        check=False,
+    )
     assert proc.returncode == 2 and "--cage and --deformed go together" in proc.stderr
 
 
@@ -200,8 +239,9 @@ def test_error_map_draws_rays_where_the_error_is_and_follows_the_loss(tmp_path):
 
     size = ERROR_TILE * 2 + 3  # the last row and column of tiles are 3 pixels wide
     ds = load_dataset(write_sphere_dataset(tmp_path / "s", n_views=2, size=size))
-    trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds,
-                      TrainOptions(steps=1, error_rays=1.0))
+    trainer = Trainer(
+        NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(steps=1, error_rays=1.0)
+    )
     assert trainer.tile_error.shape == (2 * 3 * 3,) and bool((trainer.tile_error == 1).all())  # unvisited: high
     last = 2 * 3 * 3 - 1  # image 1's corner tile
     trainer.tile_error.fill_(1e-8)
@@ -240,8 +280,9 @@ def test_masked_out_pixels_are_never_drawn_for_training(tmp_path):
     ds.images[masks] = [0.0, 1.0, 0.0, 1.0]
     ds.masks = masks
     # With the error map asked for too: a masked dataset is drawn uniformly among its valid pixels.
-    trainer = Trainer(NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds,
-                      TrainOptions(steps=1, error_rays=0.5))
+    trainer = Trainer(
+        NerfModel(NerfConfig(aabb=ds.aabb.reshape(-1).tolist(), **SMALL)), ds, TrainOptions(steps=1, error_rays=0.5)
+    )
     _, _, target, _ = trainer.sample_rays(4000)
     assert torch.equal(target, torch.tensor([0.0, 1.0, 0.0, 1.0]).expand(4000, 4))
     ds.masks = np.zeros_like(masks)

@@ -9,6 +9,9 @@ import sys
 import numpy as np
 import pytest
 import torch
+from fixtures import REPO
+from fixtures.sphere_data import RADIUS, render_sphere, sphere_cameras
+from fixtures.turntable_data import SIZE, write_turntable
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.nerf.dataset import load_dataset
@@ -16,10 +19,6 @@ from blender_nerf_deform.engine.nerf.model import NerfModel
 from blender_nerf_deform.engine.nerf.renderer import render_image
 from blender_nerf_deform.engine.nerf.silhouettes import carve, mask_meaning
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for
-
-from fixtures import REPO
-from fixtures.sphere_data import RADIUS, render_sphere, sphere_cameras
-from fixtures.turntable_data import SIZE, write_turntable
 
 
 @pytest.fixture(scope="module")
@@ -101,14 +100,46 @@ def test_object_masks_train_an_object_transparent_around_it(turntable):
 
 
 def test_train_names_the_meaning_it_used(turntable, tmp_path):
-    run = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "train", "--data", str(turntable),
-                          "--out", str(tmp_path / "run"), "--steps", "3"], cwd=REPO, capture_output=True, text=True)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "blender_nerf_deform.engine",
+            "train",
+            "--data",
+            str(turntable),
+            "--out",
+            str(tmp_path / "run"),
+            "--steps",
+            "3",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 0, run.stderr
-    assert re.search(r"masks: object masks \(the object alone, transparent around it\): the masks keep a shape",
-                     run.stderr)
+    assert re.search(
+        r"masks: object masks \(the object alone, transparent around it\): the masks keep a shape", run.stderr
+    )
     summary = json.loads((tmp_path / "run" / "train.json").read_text())
     assert summary["masks"] == "object"
-    bad = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "train", "--data", str(turntable),
-                          "--out", str(tmp_path / "bad"), "--steps", "3", "--masks", "sky"], cwd=REPO,
-                         capture_output=True, text=True)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "blender_nerf_deform.engine",
+            "train",
+            "--data",
+            str(turntable),
+            "--out",
+            str(tmp_path / "bad"),
+            "--steps",
+            "3",
+            "--masks",
+            "sky",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and "invalid choice: 'sky'" in bad.stderr and "Traceback" not in bad.stderr

@@ -26,19 +26,19 @@ import time
 
 import numpy as np
 import pytest
+from fixtures import psnr
 from PIL import Image
 from scipy import ndimage
 
 from blender_nerf_deform.engine.bend.posed import PosedRenderer
 from blender_nerf_deform.engine.geometry.cage import build_nerf_cage, cut_pins
-from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.embedding import embed_points
 from blender_nerf_deform.engine.geometry.extract import extract_nerf_mesh
+from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.region import region_from_dict
 from blender_nerf_deform.engine.geometry.surface_map import SurfaceMap
 from blender_nerf_deform.engine.nerf.camera import Camera
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf
-from fixtures import psnr
 from tools.make_floor_scene import COLUMN_TOP, FLOOR_BOUNDS, FLOOR_TOP, OBJECT_BOUNDS, PLINTH_RADIUS, PLINTH_TOP
 
 REGION_BOTTOM = FLOOR_TOP + 0.03  # 3 cm above the floor: the region cuts the plinth (FLOOR_TOP .. PLINTH_TOP)
@@ -103,9 +103,13 @@ def test_pinned_cut_keeps_the_floor_around_a_lifted_statue(floor_nerf):
     # The region: the statue's box, its bottom face 3 cm above the floor (it cuts the plinth).
     assert FLOOR_TOP < REGION_BOTTOM < PLINTH_TOP
     half_xy = PLINTH_RADIUS + 0.1
-    region = region_from_dict({"center": [0.0, 0.0, 0.5 * (REGION_BOTTOM + REGION_TOP)],
-                               "size": [2 * half_xy, 2 * half_xy, REGION_TOP - REGION_BOTTOM],
-                               "rotation_euler": [0.0, 0.0, 0.0]})
+    region = region_from_dict(
+        {
+            "center": [0.0, 0.0, 0.5 * (REGION_BOTTOM + REGION_TOP)],
+            "size": [2 * half_xy, 2 * half_xy, REGION_TOP - REGION_BOTTOM],
+            "rotation_euler": [0.0, 0.0, 0.0],
+        }
+    )
     ex = extract_nerf_mesh(nerf, resolution=96, region=region)
     print(ex.report())
     V, F = ex.vertices, ex.faces
@@ -115,14 +119,20 @@ def test_pinned_cut_keeps_the_floor_around_a_lifted_statue(floor_nerf):
     # The cut is the plinth's cross-section at the region's bottom face (not the floor: that is outside).
     assert np.abs(V[ex.cut, 2] - REGION_BOTTOM).max() < 1.5 * spacing
     cut_r = np.hypot(V[ex.cut, 0], V[ex.cut, 1])
-    print(f"cut: {int(ex.cut.sum())} vertices at z {V[ex.cut, 2].mean():.3f}, radius median {np.median(cut_r):.3f}, "
-          f"90% {np.percentile(cut_r, 90):.3f}, max {cut_r.max():.3f} (plinth {PLINTH_RADIUS}; the rest is floor fuzz)")
+    print(
+        f"cut: {int(ex.cut.sum())} vertices at z {V[ex.cut, 2].mean():.3f}, radius median {np.median(cut_r):.3f}, "
+        f"90% {np.percentile(cut_r, 90):.3f}, max {cut_r.max():.3f} (plinth {PLINTH_RADIUS}; the rest is floor fuzz)"
+    )
     assert np.percentile(cut_r, 90) < PLINTH_RADIUS + 0.05
 
-    cage = build_nerf_cage(V, F, nerf, log=lambda line: print(line), cut=ex.cut)  # the floor beyond the cut does not widen it
+    cage = build_nerf_cage(
+        V, F, nerf, log=lambda line: print(line), cut=ex.cut
+    )  # the floor beyond the cut does not widen it
     pins = cut_pins(cage.vertices, V, ex.cut, cage.margin)
-    print(f"cage: {len(cage.vertices)} vertices, {len(cage.tets)} tets, margin {cage.margin:.3f}, "
-          f"z {cage.vertices[:, 2].min():.3f} .. {cage.vertices[:, 2].max():.3f}; {len(pins)} pinned at the cut")
+    print(
+        f"cage: {len(cage.vertices)} vertices, {len(cage.tets)} tets, margin {cage.margin:.3f}, "
+        f"z {cage.vertices[:, 2].min():.3f} .. {cage.vertices[:, 2].max():.3f}; {len(pins)} pinned at the cut"
+    )
     assert len(pins) > 0
     # The cage wraps the cut with its margin: it reaches below the floor's top, into the floor.
     assert cage.vertices[:, 2].min() < FLOOR_TOP - 0.02
@@ -138,7 +148,9 @@ def test_pinned_cut_keeps_the_floor_around_a_lifted_statue(floor_nerf):
     pose[2, 3] = LIFT
     deformed = {}
     for name, cage_pins in (("pinned", pins), ("unpinned", None)):
-        solver = RegionDeformer(cage.vertices, cage.tets, embedding, [handle], None, ["head"], "ARAP", cage_pins=cage_pins)
+        solver = RegionDeformer(
+            cage.vertices, cage.tets, embedding, [handle], None, ["head"], "ARAP", cage_pins=cage_pins
+        )
         deformed[name], stats = solver.solve([pose])
         moved = surface.apply(deformed[name])[handle]
         want = V[handle] @ pose[:3, :3].T + pose[:3, 3]
@@ -166,11 +178,15 @@ def test_pinned_cut_keeps_the_floor_around_a_lifted_statue(floor_nerf):
     depth_error = np.abs(rest["depth"] - t_floor)
     sees_floor = on_floor & (rest["rgba"][..., 3] > 0.9) & (depth_error < 0.06)
     near = np.hypot(hit[..., 0], hit[..., 1]) <= PLINTH_RADIUS + 2.0 * cage.margin
-    statue = _silhouette(cam, surface.apply(deformed["pinned"]), 2) | _silhouette(cam, surface.apply(deformed["unpinned"]), 2)
+    statue = _silhouette(cam, surface.apply(deformed["pinned"]), 2) | _silhouette(
+        cam, surface.apply(deformed["unpinned"]), 2
+    )
     ring = sees_floor & near & ~statue
-    print(f"floor pixels {int((on_floor & near).sum())} near the plinth, {int((sees_floor & near).sum())} seen at rest "
-          f"(depth within 0.06 of the floor; median error {np.nanmedian(depth_error[sees_floor]):.4f}), "
-          f"{int(ring.sum())} not covered by either pose's statue")
+    print(
+        f"floor pixels {int((on_floor & near).sum())} near the plinth, {int((sees_floor & near).sum())} seen at rest "
+        f"(depth within 0.06 of the floor; median error {np.nanmedian(depth_error[sees_floor]):.4f}), "
+        f"{int(ring.sum())} not covered by either pose's statue"
+    )
     assert ring.sum() >= 100
 
     ref = _on_white(rest["rgba"])[ring]
@@ -178,8 +194,10 @@ def test_pinned_cut_keeps_the_floor_around_a_lifted_statue(floor_nerf):
     for name, out in posed.items():
         got = _on_white(out["rgba"])[ring]
         figures[name] = (psnr(got, ref), float(np.abs(got - ref).max()), float(out["rgba"][..., 3][ring].min()))
-        print(f"floor ring {name}: PSNR {figures[name][0]:.2f} dB vs rest, max error {figures[name][1]:.3f}, "
-              f"min alpha {figures[name][2]:.3f}")
+        print(
+            f"floor ring {name}: PSNR {figures[name][0]:.2f} dB vs rest, max error {figures[name][1]:.3f}, "
+            f"min alpha {figures[name][2]:.3f}"
+        )
     # Pinned: the floor is the rest floor (bending there maps samples to themselves, up to the
     # pinned tets' round trip and the renderer's sample lattice).
     assert figures["pinned"][0] >= 40.0

@@ -16,9 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.cage import PIN_DEPTH, build_cage, check_closed_mesh, cut_from_region, cut_pins
-from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.embedding import embed_points
 from blender_nerf_deform.engine.geometry.extract import extract_mesh
+from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.mesh_io import load_cage, read_ply, save_cage, write_ply
 from blender_nerf_deform.engine.geometry.region import euler_xyz_matrix, load_region, region_from_dict
 
@@ -153,13 +153,16 @@ def test_cut_travels_through_the_ply_and_the_cage_file(picked, tmp_path):
         load_cage(tmp_path / "bad.npz")
 
 
-@pytest.mark.parametrize("data, message", [
-    ({"center": [0, 0, 0], "size": [1, 0, 1], "rotation_euler": [0, 0, 0]}, "degenerate"),
-    ({"center": [0, 0, 0], "size": [1, 1, 1]}, "lacks `rotation_euler`"),
-    ({"center": [0, 0, float("nan")], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}, "finite"),
-    ({"center": [0, 0], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}, "three numbers"),
-    ([1, 2, 3], "JSON object"),
-])
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        ({"center": [0, 0, 0], "size": [1, 0, 1], "rotation_euler": [0, 0, 0]}, "degenerate"),
+        ({"center": [0, 0, 0], "size": [1, 1, 1]}, "lacks `rotation_euler`"),
+        ({"center": [0, 0, float("nan")], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}, "finite"),
+        ({"center": [0, 0], "size": [1, 1, 1], "rotation_euler": [0, 0, 0]}, "three numbers"),
+        ([1, 2, 3], "JSON object"),
+    ],
+)
 def test_bad_regions_are_named(data, message):
     with pytest.raises(EngineError, match=message):
         region_from_dict(data)
@@ -215,8 +218,9 @@ def test_two_regions_give_two_objects_each_with_its_own_cage():
     from blender_nerf_deform.engine.geometry.extract import extract_regions
 
     regions = [region_from_dict(STATUE_REGION), region_from_dict(BOX_REGION)]
-    res = extract_regions(lambda region, pick: extract_mesh(density, BOUNDS, resolution=64, region=region, pick=pick),
-                          regions)
+    res = extract_regions(
+        lambda region, pick: extract_mesh(density, BOUNDS, resolution=64, region=region, pick=pick), regions
+    )
     assert set(np.unique(res.part)) == {0, 1}
     box_part = np.max(np.abs(res.vertices - [0.75, 0.0, -0.7]), axis=1) < 0.2
     assert np.array_equal(box_part, res.part == 1)
@@ -232,7 +236,9 @@ def test_two_regions_give_two_objects_each_with_its_own_cage():
     turn[:3, :3] = euler_xyz_matrix(0.0, 0.3, 0.0)
     posed, stats = RegionDeformer(cage.vertices, cage.tets, embedding, [top], cage_pins=pins).solve([turn])
     assert stats["converged"]
-    assert np.abs(posed[cage_part == 1] - cage.vertices[cage_part == 1]).max() < 1e-12  # no handle, no pin: held at rest
+    assert (
+        np.abs(posed[cage_part == 1] - cage.vertices[cage_part == 1]).max() < 1e-12
+    )  # no handle, no pin: held at rest
     assert np.linalg.norm(posed[cage_part == 0] - cage.vertices[cage_part == 0], axis=1).max() > 0.1
     # And a handle on the box moves only the box.
     box_handle = np.flatnonzero(res.part == 1)

@@ -7,10 +7,9 @@ import sys
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from fixtures import REPO
 from fixtures.sfm_scene import write_corner_photos
+from PIL import Image
 
 
 def _colmap_info_lines(stderr: str) -> list[str]:
@@ -19,8 +18,9 @@ def _colmap_info_lines(stderr: str) -> list[str]:
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO, capture_output=True, text=True
+    )
 
 
 def _similarity_errors(got: np.ndarray, true: np.ndarray) -> tuple[float, float]:
@@ -72,7 +72,9 @@ def test_prepare_with_too_few_or_unmatchable_photos_says_so_and_writes_nothing(t
         Image.fromarray(rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)).save(photos / f"n{k}.png")
     proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data")
     # Two photos of another size than the rest: named, before any matching.
-    assert proc.returncode == 2 and "p0.png is 40x40, p1.png is 40x40, where 4 of the 6 photos are 160x120" in proc.stderr
+    assert (
+        proc.returncode == 2 and "p0.png is 40x40, p1.png is 40x40, where 4 of the 6 photos are 160x120" in proc.stderr
+    )
     for k in range(2):
         (photos / f"p{k}.png").unlink()
     proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data")
@@ -80,7 +82,9 @@ def test_prepare_with_too_few_or_unmatchable_photos_says_so_and_writes_nothing(t
     assert "Traceback" not in proc.stderr
     assert not _colmap_info_lines(proc.stderr), proc.stderr[-2000:]  # COLMAP's warnings only, then the error
     assert "the photos are small (160x120): if you have them at full size, use those" in proc.stderr
-    proc = _cli("prepare", "--images", photos, "--out", tmp_path / "data", "--colmap-log")  # all of COLMAP's log, asked for
+    proc = _cli(
+        "prepare", "--images", photos, "--out", tmp_path / "data", "--colmap-log"
+    )  # all of COLMAP's log, asked for
     assert proc.returncode == 2 and "structure from motion registered" in proc.stderr
     assert len(_colmap_info_lines(proc.stderr)) > 10, proc.stderr[-2000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no dataset, no work folder left

@@ -8,12 +8,12 @@ import sys
 
 import numpy as np
 import pytest
+from fixtures import REPO
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import boundary_faces, signed_volumes
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.cage_refine import extend_vertex_labels, refine_around, refine_cage
-from fixtures import REPO
 
 sys.path.insert(0, str(REPO / "tools" / "bench"))
 import bending_groundtruth as bench  # noqa: E402
@@ -49,8 +49,9 @@ def test_refining_a_cage_in_a_box_is_conforming_and_keeps_its_shape():
     assert _longest_edges(V3, T3).max() <= 0.3 and signed_volumes(V3, T3).min() > 0
 
 
-@pytest.mark.parametrize("bad", [dict(max_edge=0.0), dict(max_edge=float("nan")), dict(box=[[0, 0, 1], [1, 1, 0]]),
-                                 dict(box=[[0, 0, 0]])])
+@pytest.mark.parametrize(
+    "bad", [dict(max_edge=0.0), dict(max_edge=float("nan")), dict(box=[[0, 0, 1], [1, 1, 0]]), dict(box=[[0, 0, 0]])]
+)
 def test_refining_with_bad_input_is_an_engine_error(bad):
     V, T = box_cage((2, 2, 2))
     kw = dict(max_edge=0.2, box=None) | bad
@@ -67,15 +68,21 @@ def test_refining_around_a_selection_of_a_two_part_cage_labels_every_new_vertex_
     part = np.repeat([0, 1], [len(v0), len(v1)])
     selection = np.array([[0.9, 0.5, 0.5], [2.1, 0.5, 0.5]])  # a point of each object, near the gap
     V2, T2, edge, box = refine_around(V, T, selection, margin=0.05)
-    assert edge == pytest.approx(0.5 * np.median(np.linalg.norm(V[T[:, [0, 0, 0, 1, 1, 2]]] - V[T[:, [1, 2, 3, 2, 3, 3]]],
-                                                                   axis=-1)))
-    assert np.allclose(box, [[0.9 - 0.05 - edge, 0.5 - 0.05 - edge, 0.5 - 0.05 - edge],
-                             [2.1 + 0.05 + edge, 0.5 + 0.05 + edge, 0.5 + 0.05 + edge]])
+    assert edge == pytest.approx(
+        0.5 * np.median(np.linalg.norm(V[T[:, [0, 0, 0, 1, 1, 2]]] - V[T[:, [1, 2, 3, 2, 3, 3]]], axis=-1))
+    )
+    assert np.allclose(
+        box,
+        [
+            [0.9 - 0.05 - edge, 0.5 - 0.05 - edge, 0.5 - 0.05 - edge],
+            [2.1 + 0.05 + edge, 0.5 + 0.05 + edge, 0.5 + 0.05 + edge],
+        ],
+    )
     assert len(T2) > len(T) and (signed_volumes(V2, T2) > 0).all()
     labels = extend_vertex_labels(part, T2, len(V2))
     assert (labels[: len(part)] == part).all() and (labels >= 0).all()
     assert (labels[T2] == labels[T2][:, :1]).all()  # no tet joins two objects
-    assert ((V2[len(V):, 0] < 1.5) == (labels[len(V):] == 0)).all()
+    assert ((V2[len(V) :, 0] < 1.5) == (labels[len(V) :] == 0)).all()
     with pytest.raises(EngineError, match="no vertices are selected"):
         refine_around(V, T, np.zeros((0, 3)), margin=0.05)
 
@@ -83,11 +90,28 @@ def test_refining_around_a_selection_of_a_two_part_cage_labels_every_new_vertex_
 def test_the_cage_command_refuses_a_refinement_box_without_an_edge_length(tmp_path):
     import subprocess
 
-    for extra, message in ((["--refine-box", 0, 0, 0, 1, 1, 1], "--refine-box needs --refine-edge"),
-                           (["--refine-edge", -0.1], "--refine-edge must be a positive length")):
-        proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "cage", "--nerf", tmp_path / "n.ckpt",
-                               "--mesh", tmp_path / "m.ply", "--out", tmp_path / "c.npz", *map(str, extra)],
-                              cwd=REPO, capture_output=True, text=True)
+    for extra, message in (
+        (["--refine-box", 0, 0, 0, 1, 1, 1], "--refine-box needs --refine-edge"),
+        (["--refine-edge", -0.1], "--refine-edge must be a positive length"),
+    ):
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "blender_nerf_deform.engine",
+                "cage",
+                "--nerf",
+                tmp_path / "n.ckpt",
+                "--mesh",
+                tmp_path / "m.ply",
+                "--out",
+                tmp_path / "c.npz",
+                *map(str, extra),
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+        )
         assert proc.returncode != 0 and message in proc.stderr + proc.stdout, proc.stderr
         assert not (tmp_path / "c.npz").exists()
 
@@ -156,8 +180,20 @@ def test_a_squash_scales_density_by_the_rest_length_of_the_step_and_refines_the_
 # --------------------------------------------------------------------------- CI-sized ground truth
 
 # The benchmark at CI size (measured figures in the test's docstring).
-SMALL = ["--views", "40", "--test-views", "4", "--resolution", "96", "--samples", "8", "--train-steps", "500",
-         "--maps", "stretch,squash"]
+SMALL = [
+    "--views",
+    "40",
+    "--test-views",
+    "4",
+    "--resolution",
+    "96",
+    "--samples",
+    "8",
+    "--train-steps",
+    "500",
+    "--maps",
+    "stretch,squash",
+]
 
 
 @pytest.mark.slow
@@ -173,8 +209,20 @@ def test_stretching_a_band_2_7x_renders_within_the_bound_of_the_rest_pose(tmp_pa
     import subprocess
 
     def run(*extra):
-        proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench" / "bending_groundtruth.py"), "--work",
-                               str(tmp_path), *SMALL, *extra], cwd=REPO, capture_output=True, text=True, timeout=900)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                str(REPO / "tools" / "bench" / "bending_groundtruth.py"),
+                "--work",
+                str(tmp_path),
+                *SMALL,
+                *extra,
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
         assert proc.returncode in (0, 1), proc.stdout[-3000:] + proc.stderr[-3000:]
         rows = {r["pose"]: r for r in json.loads((tmp_path / "results.json").read_text())["rows"]}
         rest = rows["rest (no cage)"]["psnr"]
@@ -198,9 +246,20 @@ def test_a_bad_train_resolution_is_one_error_line(value, tmp_path):
     """The benchmark's --train-resolution (its own process each): refused before anything is rendered."""
     import subprocess
 
-    proc = subprocess.run([sys.executable, str(REPO / "tools" / "bench" / "bending_groundtruth.py"), "--work",
-                           str(tmp_path / "work"), "--train-resolution", value], cwd=REPO, capture_output=True,
-                          text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "tools" / "bench" / "bending_groundtruth.py"),
+            "--work",
+            str(tmp_path / "work"),
+            "--train-resolution",
+            value,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     errors = [line for line in proc.stderr.splitlines() if "error:" in line]
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert len(errors) == 1 and "--train-resolution" in errors[0], proc.stderr

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fixtures import bar_handles
 
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.barycentric import inversion_report
 from blender_nerf_deform.engine.geometry.deform import ArapDeformer, regions_to_cage
 from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
 from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
-from fixtures import bar_handles
 
 
 @pytest.fixture(scope="module")
@@ -108,8 +108,14 @@ def test_the_fused_local_step_matches_the_jacobi_kernels(bar):
     elements, vol0 = ElementsEnergy(V, T), signed_volumes(V, T)
     rng = np.random.default_rng(7)
     turn = bar_handles.turn_x(170, V.mean(0))
-    for U in (V @ turn[:3, :3].T + turn[:3, 3], V + 0.05 * rng.standard_normal(V.shape), V * [1.0, 0.0, 0.0],
-              V * [1.0, 1.0, 0.0], 0.0 * V, V * [1.0, -1.0, 1.0]):
+    for U in (
+        V @ turn[:3, :3].T + turn[:3, 3],
+        V + 0.05 * rng.standard_normal(V.shape),
+        V * [1.0, 0.0, 0.0],
+        V * [1.0, 1.0, 0.0],
+        0.0 * V,
+        V * [1.0, -1.0, 1.0],
+    ):
         U = np.ascontiguousarray(U)
         B, J = np.empty_like(U), np.empty(len(T))
         energy = surface_local(U, T, elements.W, elements.E, 1.0 / (6.0 * vol0), B, J)

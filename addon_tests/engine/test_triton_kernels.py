@@ -9,15 +9,14 @@ import sys
 import numpy as np
 import pytest
 import torch
+from fixtures import REPO
+from fixtures.ball_model import ball_model
+from fixtures.sphere_data import look_at
 
 from blender_nerf_deform.engine import backend
 from blender_nerf_deform.engine.launch_count import LaunchCounter
 from blender_nerf_deform.engine.nerf.encoding import HashEncoding
 from blender_nerf_deform.engine.nerf.renderer import Camera, render_image
-
-from fixtures import REPO
-from fixtures.ball_model import ball_model
-from fixtures.sphere_data import look_at
 
 pytestmark = pytest.mark.skipif(not backend.HAVE_TRITON, reason="triton is not installed")
 
@@ -39,8 +38,14 @@ def test_the_kernels_in_a_fresh_process_under_the_interpreter():
     if INTERPRETED:
         pytest.skip("this is that process")
     env = dict(os.environ, TRITON_INTERPRET="1")
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", __file__],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", __file__],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0 and " failed" not in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]
     passed = re.search(r"(\d+) passed", proc.stdout)
     assert passed and int(passed.group(1)) >= 10, proc.stdout[-2000:]
@@ -48,8 +53,9 @@ def test_the_kernels_in_a_fresh_process_under_the_interpreter():
 
 def test_the_hash_encoding_kernels_give_the_torch_values_and_table_gradient():
     torch.manual_seed(0)
-    enc = HashEncoding(n_levels=4, n_features=2, log2_table_size=10, base_resolution=4, finest_resolution=64,
-                       init_scale=1.0)
+    enc = HashEncoding(
+        n_levels=4, n_features=2, log2_table_size=10, base_resolution=4, finest_resolution=64, init_scale=1.0
+    )
     assert enc.dense_levels[0] and not enc.dense_levels[-1]  # a dense level and hashed ones
     x = torch.rand(200, 3)
     x[0] = float("nan")
@@ -93,8 +99,10 @@ def _twist(model):
 
     rest, tets = box_cage((3, 3, 3), lo=(-1.0,) * 3, hi=(1.0,) * 3)
     a = 0.5 * np.clip(rest[:, 2], 0, None)
-    deformed = np.stack([np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1],
-                         np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1], rest[:, 2]], axis=1)
+    deformed = np.stack(
+        [np.cos(a) * rest[:, 0] - np.sin(a) * rest[:, 1], np.sin(a) * rest[:, 0] + np.cos(a) * rest[:, 1], rest[:, 2]],
+        axis=1,
+    )
     bend = CageBend(model, rest, tets).set_deformed(deformed)
     return {"sample_transform": bend.sample_transform, "occupancy": bend.occupancy}
 
@@ -148,8 +156,11 @@ def test_the_march_kernel_places_the_torch_formulations_samples(unbounded):
 
     torch.manual_seed(2)
     if unbounded:
-        model = NerfModel(NerfConfig(contraction="linf", log2_table_size=10, finest_resolution=32, occ_resolution=16,
-                                     steps_per_diagonal=64))
+        model = NerfModel(
+            NerfConfig(
+                contraction="linf", log2_table_size=10, finest_resolution=32, occ_resolution=16, steps_per_diagonal=64
+            )
+        )
         with torch.no_grad():
             model.encoding.table.uniform_(-1, 1)
         model.occupancy.update(model.density, model.config.render_step, 0.0)
@@ -197,8 +208,15 @@ def test_the_march_setup_kernel_gives_the_torch_state(unbounded):
     from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 
     torch.manual_seed(6)
-    model = NerfModel(NerfConfig(contraction="linf" if unbounded else "none", log2_table_size=10,
-                                 finest_resolution=32, occ_resolution=16, steps_per_diagonal=64))
+    model = NerfModel(
+        NerfConfig(
+            contraction="linf" if unbounded else "none",
+            log2_table_size=10,
+            finest_resolution=32,
+            occ_resolution=16,
+            steps_per_diagonal=64,
+        )
+    )
     with torch.no_grad():
         model.occupancy.mask[:] = torch.rand(model.occupancy.mask.shape) < 0.02  # a few cells, off centre
     model.occupancy.mask[0] = True
@@ -217,8 +235,9 @@ def test_the_march_setup_kernel_gives_the_torch_state(unbounded):
         if triton_on:
             assert counter.by_op["kernel:march_setup"] == 1 and counter.syncs == 0
     for name in ("phase", "j", "j_end", "t", "t_in", "t_out", "t_far", "u"):
-        torch.testing.assert_close(getattr(states[0], name), getattr(states[1], name), atol=0, rtol=0,
-                                   equal_nan=True, msg=name)
+        torch.testing.assert_close(
+            getattr(states[0], name), getattr(states[1], name), atol=0, rtol=0, equal_nan=True, msg=name
+        )
     assert (states[0].phase < 3).sum() > 5 and (states[0].phase == 3).any()
 
 
@@ -250,8 +269,12 @@ def test_the_training_composite_kernels_give_the_torch_values_and_gradients():
     sigma.grad = rgb.grad = None
     tau = sigma * dt
     w = renderer._segment_exclusive(tau, row, first) * (1.0 - torch.exp(-tau))
-    reference = (renderer._segment_sum(w[:, None] * rgb, row, n), renderer._segment_sum(w, row, n),
-                 renderer._segment_sum(w * t, row, n), w)
+    reference = (
+        renderer._segment_sum(w[:, None] * rgb, row, n),
+        renderer._segment_sum(w, row, n),
+        renderer._segment_sum(w * t, row, n),
+        w,
+    )
     loss(*reference).backward()
     for got, want in zip(out, reference):
         torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
@@ -261,11 +284,11 @@ def test_the_training_composite_kernels_give_the_torch_values_and_gradients():
 
 
 def test_a_training_step_with_the_kernels_waits_once_and_updates_like_the_torch_formulation(tmp_path):
+    from fixtures.sphere_data import write_sphere_dataset
+
     from blender_nerf_deform.engine.nerf.dataset import load_dataset
     from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
     from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions
-
-    from fixtures.sphere_data import write_sphere_dataset
 
     data = load_dataset(write_sphere_dataset(tmp_path / "train", n_views=3, size=8, seed=0))
     tiny = {"log2_table_size": 10, "finest_resolution": 32, "occ_resolution": 16, "steps_per_diagonal": 48}
@@ -280,12 +303,24 @@ def test_a_training_step_with_the_kernels_waits_once_and_updates_like_the_torch_
                     info = trainer.step()
                 assert counter.syncs == 1, counter.summary()
         kernels = {op for op in counter.by_op if op.startswith("kernel:")}
-        assert kernels == ({"kernel:hash_forward", "kernel:hash_backward", "kernel:march", "kernel:march_setup",
-                            "kernel:sh_encode", "kernel:composite_train", "kernel:composite_train_backward"}
-                           if triton_on else set())
+        assert kernels == (
+            {
+                "kernel:hash_forward",
+                "kernel:hash_backward",
+                "kernel:march",
+                "kernel:march_setup",
+                "kernel:sh_encode",
+                "kernel:composite_train",
+                "kernel:composite_train_backward",
+            }
+            if triton_on
+            else set()
+        )
         results.append((info, [p.detach().clone() for p in model.parameters()], counter.launches))
     (info, params, launches), (info0, params0, launches0) = results
-    assert info["samples_per_ray"] == info0["samples_per_ray"] and info["loss"] == pytest.approx(info0["loss"], rel=1e-4)
+    assert info["samples_per_ray"] == info0["samples_per_ray"] and info["loss"] == pytest.approx(
+        info0["loss"], rel=1e-4
+    )
     for p, p0 in zip(params, params0):
         torch.testing.assert_close(p, p0, atol=2e-4, rtol=1e-3)
     assert launches0 - launches > 200  # what the kernels replace

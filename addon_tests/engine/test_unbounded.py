@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from fixtures.room_data import write_room_dataset
+from fixtures.sphere_data import look_at
 
 from blender_nerf_deform.engine import backend
 from blender_nerf_deform.engine.nerf import renderer
@@ -15,11 +17,17 @@ from blender_nerf_deform.engine.nerf.model import NerfConfig, NerfModel
 from blender_nerf_deform.engine.nerf.occupancy import ContractedGrid
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for
 
-from fixtures.room_data import write_room_dataset
-from fixtures.sphere_data import look_at
-
-SMALL = dict(n_levels=4, n_features=2, log2_table_size=12, base_resolution=8, finest_resolution=64,
-             density_hidden=16, geo_feat_dim=7, color_hidden=16, occ_resolution=32)
+SMALL = dict(
+    n_levels=4,
+    n_features=2,
+    log2_table_size=12,
+    base_resolution=8,
+    finest_resolution=64,
+    density_hidden=16,
+    geo_feat_dim=7,
+    color_hidden=16,
+    occ_resolution=32,
+)
 
 
 def test_contraction_is_continuous_at_the_inner_box_and_maps_infinity_inside_the_grid():
@@ -74,7 +82,7 @@ def test_marching_reaches_the_background_and_the_torch_path_finds_the_same_sampl
     o = torch.tensor([[0.0, -2.5, 0.3]]).repeat(64, 1)
     d = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(1)), dim=1)
     results = {}
-    for path in (("auto", "torch") if backend.HAVE_NUMBA else ("torch",)):
+    for path in ("auto", "torch") if backend.HAVE_NUMBA else ("torch",):
         monkeypatch.setattr(backend, "_path", path)
         results[path] = renderer.march(o, d, m.occupancy, m.config.render_step, model=m)
     rays, t = results["torch"]
@@ -92,8 +100,9 @@ def test_rounds_with_early_termination_give_the_full_composite():
     what the retired rays could still add."""
     m = _unbounded_model()
     cam_o = torch.tensor([[0.3, -2.6, 0.4]]).repeat(300, 1)
-    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=torch.Generator().manual_seed(2)) * 0.4
-                                      + torch.tensor([0.0, 1.0, 0.0]), dim=1)
+    d = torch.nn.functional.normalize(
+        torch.randn(300, 3, generator=torch.Generator().manual_seed(2)) * 0.4 + torch.tensor([0.0, 1.0, 0.0]), dim=1
+    )
     with torch.no_grad():
         fast = renderer.render_rays(m, cam_o, d, background=(0.0, 0.0, 0.0), near=0.0)
         rays, t = renderer.march(cam_o, d, m.occupancy, m.config.render_step, model=m)
@@ -132,13 +141,18 @@ def test_an_unbounded_nerf_learns_a_room_that_a_bounded_one_cannot(tmp_path):
             setattr(cfg, k, v)
         torch.manual_seed(0)
         model = NerfModel(cfg)
-        Trainer(model, train, TrainOptions(steps=400, target_samples=1 << 13, occ_warmup_steps=64)).train(progress=False)
+        Trainer(model, train, TrainOptions(steps=400, target_samples=1 << 13, occ_warmup_steps=64)).train(
+            progress=False
+        )
         model.eval()
         if scene == "unbounded":
             # The unbounded threshold prunes the thin fog a room leaves in the grid (0.01: 52 % of the
             # inner cells kept, 150 samples per ray; 0.1: 22 %, 79), so rays march where surfaces are.
             assert model.occupancy.mask.float().mean() < 0.35
-        scores[scene] = (float(np.mean(evaluate(model, train.subset(range(0, 24, 4))))), float(np.mean(evaluate(model, test))))
+        scores[scene] = (
+            float(np.mean(evaluate(model, train.subset(range(0, 24, 4))))),
+            float(np.mean(evaluate(model, test))),
+        )
     # The walls lie outside the bounded box: the bounded NeRF can only paint them on its faces, which
     # fits neither its own views nor new ones.
     (fit_b, new_b), (fit_u, new_u) = scores["bounded"], scores["unbounded"]
@@ -216,20 +230,27 @@ def test_occupancy_updates_cost_an_unbounded_model_what_they_cost_a_bounded_one(
     """Two grids, each updated half as often: 16 steps per grid between updates unless asked otherwise."""
     train = load_dataset(write_room_dataset(tmp_path / "room", n_views=2, size=8))
     updated = []
-    for scene, every, expected in (("bounded", None, [0, 16, 32]), ("unbounded", None, [0, 32]),
-                                   ("unbounded", 8, [0, 8, 16, 24, 32, 40])):
+    for scene, every, expected in (
+        ("bounded", None, [0, 16, 32]),
+        ("unbounded", None, [0, 32]),
+        ("unbounded", 8, [0, 8, 16, 24, 32, 40]),
+    ):
         cfg = config_for(train, scene)
         for k, v in SMALL.items():
             setattr(cfg, k, v)
         torch.manual_seed(0)
-        trainer = Trainer(NerfModel(cfg), train, TrainOptions(steps=48, target_samples=1 << 8, occ_warmup_steps=0,
-                                                                occ_update_every=every))
+        trainer = Trainer(
+            NerfModel(cfg),
+            train,
+            TrainOptions(steps=48, target_samples=1 << 8, occ_warmup_steps=0, occ_update_every=every),
+        )
         steps = []
 
         def recorded(grid):  # the real update, and the step it ran at
             def update(*args, **kwargs):
                 steps.append(trainer.step_count)
                 return type(grid).update(grid, *args, **kwargs)
+
             return update
 
         for grid in trainer.grids:
@@ -273,7 +294,7 @@ def test_pose_refinement_s_gradient_turns_a_wrong_pose_back_and_resumes(tmp_path
     out = renderer.render_rays(model, o, d, chunk=1 << 20)
     ((out["rgb"] - target[:, :3]) ** 2).mean().backward()
     g = trainer.pose_delta.grad
-    assert torch.count_nonzero(g[:k]) == 0 and torch.count_nonzero(g[k + 1:]) == 0  # only photo k's rays ran
+    assert torch.count_nonzero(g[:k]) == 0 and torch.count_nonzero(g[k + 1 :]) == 0  # only photo k's rays ran
     assert (-g[k, :3].double().numpy()) @ -axis > 0  # downhill is towards the true pose
     # Followed downhill (the field fixed, every pixel of the photo), the correction undoes most of the error.
     steps = torch.optim.Adam([trainer.pose_delta], lr=4e-3)

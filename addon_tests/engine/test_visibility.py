@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import torch
+from fixtures.sphere_data import RADIUS, sphere_cameras, write_sphere_dataset
 
 from blender_nerf_deform.engine.nerf.camera import Camera
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf, save_nerf
@@ -15,15 +16,16 @@ from blender_nerf_deform.engine.nerf.occupancy import OccupancyGrid
 from blender_nerf_deform.engine.nerf.trainer import Trainer, TrainOptions, config_for
 from blender_nerf_deform.engine.nerf.visibility import paid_for, photos_seeing_through
 
-from fixtures.sphere_data import RADIUS, sphere_cameras, write_sphere_dataset
-
 SIZE, ANGLE = 48, 0.47  # a narrow lens, as gold_cape's: few photos see the space beside one camera
 
 
 def _sphere_depth(camera: Camera) -> torch.Tensor:
     """Exact distance to the sphere of radius RADIUS at the origin along each pixel's ray (inf where it misses)."""
     j, i = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
-    d = np.stack([(i - camera.cx) / camera.fx, -(j - camera.cy) / camera.fy, -np.ones_like(i)], -1) @ camera.c2w[:3, :3].T
+    d = (
+        np.stack([(i - camera.cx) / camera.fx, -(j - camera.cy) / camera.fy, -np.ones_like(i)], -1)
+        @ camera.c2w[:3, :3].T
+    )
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = camera.c2w[:3, 3]
     b = d @ o

@@ -8,16 +8,15 @@ import sys
 import numpy as np
 import pytest
 import torch
+from fixtures import REPO
+from fixtures.ball_model import ball_model
 
-from blender_nerf_deform.engine.bend.cage_bend import CageBend
 from blender_nerf_deform.engine.bend.baked_volume import box_of_bounds, load_baked, volume_grid
+from blender_nerf_deform.engine.bend.cage_bend import CageBend
 from blender_nerf_deform.engine.bend.volume import bake_box, bake_volume
 from blender_nerf_deform.engine.errors import EngineError
 from blender_nerf_deform.engine.geometry.cage import box_cage
 from blender_nerf_deform.engine.geometry.region import region_from_dict
-
-from fixtures import REPO
-from fixtures.ball_model import ball_model
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +105,9 @@ def test_bad_bakes_are_refused_before_any_work(ball):
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", *map(str, args)], cwd=REPO, capture_output=True, text=True
+    )
 
 
 @pytest.mark.slow
@@ -121,21 +121,36 @@ def test_cli_bakes_one_volume_per_pose(sphere_nerf, tmp_path):
     poses.mkdir()
     np.save(poses / "pose_2.npy", rest + [0.0, 0.0, 0.5])
     np.save(poses / "pose_1.npy", rest)
-    proc = _cli("bake-volume", "--nerf", ckpt, "--out", tmp_path / "vol", "--cage", tmp_path / "cage.npz",
-                "--deformed", poses, "--resolution", "32")
+    proc = _cli(
+        "bake-volume",
+        "--nerf",
+        ckpt,
+        "--out",
+        tmp_path / "vol",
+        "--cage",
+        tmp_path / "cage.npz",
+        "--deformed",
+        poses,
+        "--resolution",
+        "32",
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert sorted(p.name for p in (tmp_path / "vol").iterdir()) == ["pose_1.npz", "pose_2.npz"]
     first, second = load_baked(tmp_path / "vol" / "pose_1.npz"), load_baked(tmp_path / "vol" / "pose_2.npz")
     assert first.grid.shape == (32, 32, 32) and len(first.index) > 0
+
     # Lifted by 0.5 (16/3 voxels): the content's centre of mass rises by about that much.
     def centre_z(b):
         return float((b.index[:, 2] * b.density).sum() / b.density.sum())
+
     assert centre_z(second) - centre_z(first) == pytest.approx(0.5 / (3.0 / 32), abs=0.5)
 
     proc = _cli("bake-volume", "--nerf", ckpt, "--out", tmp_path / "rest", "--resolution", "16", "--extent", "cage")
     assert proc.returncode == 2 and "--extent cage needs --cage and --deformed" in proc.stderr
     assert not (tmp_path / "rest").exists()
     proc = _cli("bake-volume", "--nerf", ckpt, "--out", tmp_path / "rest", "--resolution", "0")
-    assert proc.returncode == 2 and "resolution must be a whole number" in proc.stderr and "Traceback" not in proc.stderr
+    assert (
+        proc.returncode == 2 and "resolution must be a whole number" in proc.stderr and "Traceback" not in proc.stderr
+    )
     proc = _cli("bake-volume", "--nerf", ckpt, "--out", tmp_path / "rest", "--resolution", "16")
     assert proc.returncode == 0 and (tmp_path / "rest" / "rest.npz").is_file()

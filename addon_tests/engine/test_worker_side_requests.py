@@ -13,19 +13,24 @@ import time
 import numpy as np
 import pytest
 import torch
-
-from blender_nerf_deform.engine.service.protocol import read_message, write_message
 from fixtures import REPO
 from fixtures.sfm_scene import write_corner_photos
 from fixtures.sphere_data import write_sphere_dataset
+
+from blender_nerf_deform.engine.service.protocol import read_message, write_message
 
 
 class Conversation:
     """A worker process and the messages it sent, read in order."""
 
     def __init__(self):
-        self.proc = subprocess.Popen([sys.executable, "-m", "blender_nerf_deform.engine.service.worker"], cwd=REPO,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "blender_nerf_deform.engine.service.worker"],
+            cwd=REPO,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+        )
         hello, _ = read_message(self.proc.stdout)
         assert hello["type"] == "hello" and "training_preview" in hello["ops"] and "prepare" in hello["ops"]
         self.log: list[tuple[dict, dict]] = []
@@ -131,11 +136,23 @@ def test_hostile_preview_and_prepare_params_are_input_errors(worker, tmp_path):
         ("prepare", {"images": ["a"], "out": "x"}, "prepare needs `images`"),
         ("prepare", {"images": str(photos), "out": None}, "prepare needs `out`"),
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "matcher": 3}, "`matcher` must be one of"),
-        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "max_size": "big"}, "`max_size` must be an integer"),
+        (
+            "prepare",
+            {"images": str(photos), "out": str(tmp_path / "d"), "max_size": "big"},
+            "`max_size` must be an integer",
+        ),
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "seed": True}, "`seed` must be an integer"),
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d")}, "no such folder"),
-        ("train", {"data": str(photos), "out": str(tmp_path / "r"), "downscale": "2"}, "`downscale` must be a whole number"),
-        ("train", {"data": str(photos), "out": str(tmp_path / "r"), "downscale": 0}, "`downscale` must be a whole number"),
+        (
+            "train",
+            {"data": str(photos), "out": str(tmp_path / "r"), "downscale": "2"},
+            "`downscale` must be a whole number",
+        ),
+        (
+            "train",
+            {"data": str(photos), "out": str(tmp_path / "r"), "downscale": 0},
+            "`downscale` must be a whole number",
+        ),
     ]
     for k, (op, params, message) in enumerate(cases):
         worker.request(k, op, params)
@@ -146,8 +163,8 @@ def test_hostile_preview_and_prepare_params_are_input_errors(worker, tmp_path):
 
 def test_hostile_cage_refinement_is_an_input_error_before_any_tetrahedralizing(worker):
     """Build Cage's Refine Selected arrives as flags and an edge length: wrong ones are named at once."""
-    from blender_nerf_deform.engine.geometry.cage import box_cage
     from blender_nerf_deform.engine.geometry.barycentric import boundary_faces
+    from blender_nerf_deform.engine.geometry.cage import box_cage
 
     v, t = box_cage((2, 2, 2))
     mesh = {"vertices": v.astype(np.float64), "faces": boundary_faces(t).astype(np.int64)}
@@ -193,7 +210,6 @@ def test_hostile_preview_cameras_of_a_checkpoint_are_input_errors(worker, sphere
     assert header["type"] == "result" and arrays["rgba"].shape == (24, 32, 4) and arrays["rgba"][..., 3].max() > 0.5
 
 
-
 def test_a_render_request_with_bad_substeps_is_an_input_error_and_good_ones_render(worker, sphere_nerf):
     """The `render` op's substeps (the add-on's Render Substeps, sent as JSON): anything but an integer
     from 1 to MAX_SUBSTEPS is one input error, before the NeRF is loaded; 1 and FINAL_SUBSTEPS render."""
@@ -201,9 +217,19 @@ def test_a_render_request_with_bad_substeps_is_an_input_error_and_good_ones_rend
 
     pose = np.eye(4)
     pose[2, 3] = 3.0
-    params = {"checkpoint": str(sphere_nerf[0]), "pose": {"kind": "rest"},
-              "camera": {"camera_to_world": pose.tolist(), "fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0,
-                         "width": 32, "height": 24}}
+    params = {
+        "checkpoint": str(sphere_nerf[0]),
+        "pose": {"kind": "rest"},
+        "camera": {
+            "camera_to_world": pose.tolist(),
+            "fx": 30.0,
+            "fy": 30.0,
+            "cx": 16.0,
+            "cy": 12.0,
+            "width": 32,
+            "height": 24,
+        },
+    }
     for k, bad in enumerate([0, MAX_SUBSTEPS + 1, 1.5, "2", True, None, float("nan")]):
         worker.request(k, "render", {**params, "substeps": bad})
         header, _ = worker.until(k)
@@ -217,6 +243,7 @@ def test_a_render_request_with_bad_substeps_is_an_input_error_and_good_ones_rend
         images[substeps] = arrays["rgba"]
     assert images[1].shape == (24, 32, 4) and images[1][..., 3].max() > 0.5
     assert not np.array_equal(images[1], images[FINAL_SUBSTEPS])  # the finer march is another quadrature
+
 
 @pytest.mark.slow
 def test_prepare_op_reports_its_stages_and_a_cancel_leaves_nothing(worker, tmp_path):
@@ -255,16 +282,32 @@ def test_warm_loads_each_checkpoint_and_renders_a_view_of_it_and_refuses_bad_par
         worker.request(k, "warm", {"checkpoints": bad})
         header, _ = worker.until(k)
         assert header["type"] == "error" and header["kind"] == "input", (bad, header)
-        assert ("checkpoint" in header["message"]), (bad, header["message"])
+        assert "checkpoint" in header["message"], (bad, header["message"])
     worker.request(20, "warm", {"checkpoints": [str(sphere_nerf[0])]})
     header, _ = worker.until(20)
     assert header["type"] == "result", header
     assert len(header["result"]["color_samples_per_ray"]) == 1 and header["result"]["color_samples_per_ray"][0] > 0
-    assert any(h.get("id") == 20 and h["type"] == "progress" and "loaded" in h.get("message", "") for h, _ in worker.log)
+    assert any(
+        h.get("id") == 20 and h["type"] == "progress" and "loaded" in h.get("message", "") for h, _ in worker.log
+    )
     pose = np.eye(4)
     pose[2, 3] = 3.0
-    worker.request(21, "render", {"checkpoint": str(sphere_nerf[0]), "pose": {"kind": "rest"},
-                                  "camera": {"camera_to_world": pose.tolist(), "fx": 30.0, "fy": 30.0, "cx": 16.0,
-                                             "cy": 12.0, "width": 32, "height": 24}})
+    worker.request(
+        21,
+        "render",
+        {
+            "checkpoint": str(sphere_nerf[0]),
+            "pose": {"kind": "rest"},
+            "camera": {
+                "camera_to_world": pose.tolist(),
+                "fx": 30.0,
+                "fy": 30.0,
+                "cx": 16.0,
+                "cy": 12.0,
+                "width": 32,
+                "height": 24,
+            },
+        },
+    )
     header, arrays = worker.until(21)
     assert header["type"] == "result" and arrays["rgba"][..., 3].max() > 0.5

@@ -15,7 +15,7 @@ from .data.guards import guard_classes
 from .deform import handles, live_preview
 from .edit import cage, extract, load_nerf, pick, regions
 from .export import bake_volume
-from .render import composite, prewarm, preview_render, render_engine
+from .render import composite, preview_render, prewarm, render_engine
 from .train import operators as train_operators
 from .train import photos, training_preview
 from .ui import panel, preferences, scene_panel, stage_panels
@@ -23,8 +23,30 @@ from .worker import client as worker_client
 from .worker import setup as worker_setup
 
 # Bottom up; the panels last, the main one before its sub-panels (Blender lists them in this order).
-_modules = (properties, worker_setup, capture_operators, train_operators, training_preview, photos, load_nerf, regions, pick, extract,
-            cage, handles, live_preview, render_engine, prewarm, preview_render, composite, bake_volume, preferences, panel, scene_panel, stage_panels)
+_modules = (
+    properties,
+    worker_setup,
+    capture_operators,
+    train_operators,
+    training_preview,
+    photos,
+    load_nerf,
+    regions,
+    pick,
+    extract,
+    cage,
+    handles,
+    live_preview,
+    render_engine,
+    prewarm,
+    preview_render,
+    composite,
+    bake_volume,
+    preferences,
+    panel,
+    scene_panel,
+    stage_panels,
+)
 
 
 def register():

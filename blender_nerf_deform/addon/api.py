@@ -58,10 +58,22 @@ def load(checkpoint: str) -> bpy.types.Object:
     return bpy.context.active_object
 
 
-def capture_dataset(out: str = "", objects=None, count: int = 100, test_count: int = 0, radius: float = 0.0,
-                    resolution=(200, 200), lens: float = 50.0, seed: int = 0, hemisphere: bool = False,
-                    min_elevation: float | None = None, engine: str = "KEEP", samples: int = 16,
-                    transparent: bool = True, selected_only: bool = True) -> str:
+def capture_dataset(
+    out: str = "",
+    objects=None,
+    count: int = 100,
+    test_count: int = 0,
+    radius: float = 0.0,
+    resolution=(200, 200),
+    lens: float = 50.0,
+    seed: int = 0,
+    hemisphere: bool = False,
+    min_elevation: float | None = None,
+    engine: str = "KEEP",
+    samples: int = 16,
+    transparent: bool = True,
+    selected_only: bool = True,
+) -> str:
     """Capture Dataset of `objects` (None: the selected objects), blocking: the dataset folder.
 
     Cameras around the objects (radius 0: automatic), rendered by the scene's engine (engine="KEEP")
@@ -75,27 +87,63 @@ def capture_dataset(out: str = "", objects=None, count: int = 100, test_count: i
         _activate(objects[0])
         for obj in objects[1:]:
             obj.select_set(True)
-    _run(bpy.ops.nerf_deform.capture_dataset, "Capture Dataset", output=str(out), count=count, test_count=test_count,
-         radius=radius, resolution=tuple(resolution), lens=lens, seed=seed, hemisphere=hemisphere,
-         use_min_elevation=min_elevation is not None,
-         min_elevation=0.0 if min_elevation is None else float(min_elevation), engine=engine, samples=samples,
-         transparent=transparent, selected_only=selected_only)
+    _run(
+        bpy.ops.nerf_deform.capture_dataset,
+        "Capture Dataset",
+        output=str(out),
+        count=count,
+        test_count=test_count,
+        radius=radius,
+        resolution=tuple(resolution),
+        lens=lens,
+        seed=seed,
+        hemisphere=hemisphere,
+        use_min_elevation=min_elevation is not None,
+        min_elevation=0.0 if min_elevation is None else float(min_elevation),
+        engine=engine,
+        samples=samples,
+        transparent=transparent,
+        selected_only=selected_only,
+    )
     import os
 
     return os.path.normpath(bpy.path.abspath(bpy.context.scene.nerf_deform_training.data))
 
 
-def train(data: str, run_folder: str = "", seconds: float = 300.0, steps: int = 0, device: str = "auto",
-          downscale: int = 1, resume: bool = False, masks: str = "auto") -> bpy.types.Object:
+def train(
+    data: str,
+    run_folder: str = "",
+    seconds: float = 300.0,
+    steps: int = 0,
+    device: str = "auto",
+    downscale: int = 1,
+    resume: bool = False,
+    masks: str = "auto",
+) -> bpy.types.Object:
     """Train NeRF on a dataset folder (blocking), then the NeRF object that shows it. `masks`: what the dataset's
     masks mean ("object": the object alone, "ignore": pixels to skip, "auto": by their shape)."""
-    _run(bpy.ops.nerf_deform.train_nerf, "Train NeRF", data=str(data), run_folder=str(run_folder), seconds=seconds,
-         steps=steps, device=device, downscale=downscale, resume=resume, masks=masks)
-    from .data.paths import default_run_folder
+    _run(
+        bpy.ops.nerf_deform.train_nerf,
+        "Train NeRF",
+        data=str(data),
+        run_folder=str(run_folder),
+        seconds=seconds,
+        steps=steps,
+        device=device,
+        downscale=downscale,
+        resume=resume,
+        masks=masks,
+    )
     import os
 
-    ckpt = os.path.join(os.path.abspath(bpy.path.abspath(run_folder)) if run_folder else default_run_folder(
-        os.path.abspath(bpy.path.abspath(data))), "nerf.ckpt")
+    from .data.paths import default_run_folder
+
+    ckpt = os.path.join(
+        os.path.abspath(bpy.path.abspath(run_folder))
+        if run_folder
+        else default_run_folder(os.path.abspath(bpy.path.abspath(data))),
+        "nerf.ckpt",
+    )
     return _showing(ckpt, "Train NeRF")
 
 
@@ -104,23 +152,46 @@ def _showing(ckpt: str, what: str) -> bpy.types.Object:
     from .data.paths import same_file
 
     for obj in bpy.data.objects:
-        if obj.nerf_deform.role == "NERF" and obj.nerf_deform.checkpoint and \
-                same_file(bpy.path.abspath(obj.nerf_deform.checkpoint), ckpt):
+        if (
+            obj.nerf_deform.role == "NERF"
+            and obj.nerf_deform.checkpoint
+            and same_file(bpy.path.abspath(obj.nerf_deform.checkpoint), ckpt)
+        ):
             return obj
     raise RuntimeError(f"{what} finished but no NeRF object shows {ckpt}")
 
 
-def import_photos(photos: str, run_folder: str = "", seconds: float = 300.0, steps: int = 0, device: str = "auto",
-                  downscale: int = 1, matcher: str = "exhaustive") -> bpy.types.Object:
+def import_photos(
+    photos: str,
+    run_folder: str = "",
+    seconds: float = 300.0,
+    steps: int = 0,
+    device: str = "auto",
+    downscale: int = 1,
+    matcher: str = "exhaustive",
+) -> bpy.types.Object:
     """Import Photos (blocking): the photos' cameras by structure from motion into <run folder>/dataset,
     a NeRF trained on them (run folder default: //nerf_runs/<photos folder name>), then its NeRF object."""
-    from .data.paths import default_run_folder
     import os
 
-    _run(bpy.ops.nerf_deform.import_photos, "Import Photos", photos=str(photos), run_folder=str(run_folder),
-         seconds=seconds, steps=steps, device=device, downscale=downscale, matcher=matcher)
-    run = os.path.abspath(bpy.path.abspath(str(run_folder))) if run_folder else default_run_folder(
-        os.path.abspath(bpy.path.abspath(str(photos))))
+    from .data.paths import default_run_folder
+
+    _run(
+        bpy.ops.nerf_deform.import_photos,
+        "Import Photos",
+        photos=str(photos),
+        run_folder=str(run_folder),
+        seconds=seconds,
+        steps=steps,
+        device=device,
+        downscale=downscale,
+        matcher=matcher,
+    )
+    run = (
+        os.path.abspath(bpy.path.abspath(str(run_folder)))
+        if run_folder
+        else default_run_folder(os.path.abspath(bpy.path.abspath(str(photos))))
+    )
     return _showing(os.path.join(run, "nerf.ckpt"), "Import Photos")
 
 
@@ -217,13 +288,25 @@ def pin(nerf, vertex_indices) -> None:
 def place_cursor_on_nerf(nerf, origin, direction) -> Vector:
     """Place 3D Cursor on NeRF along a world-space ray; returns the cursor's location."""
     _activate(_nerf(nerf))
-    _run(bpy.ops.nerf_deform.place_cursor_on_nerf, "Place 3D Cursor on NeRF", origin=tuple(origin),
-         direction=tuple(direction))
+    _run(
+        bpy.ops.nerf_deform.place_cursor_on_nerf,
+        "Place 3D Cursor on NeRF",
+        origin=tuple(origin),
+        direction=tuple(direction),
+    )
     return bpy.context.scene.cursor.location.copy()
 
 
-def bake_volume(nerf, folder: str, resolution: int = 256, extent: str = "NERF", region=None, frames=None,
-                shading: str = "EMISSION", supersample: int = 1) -> bpy.types.Object:
+def bake_volume(
+    nerf,
+    folder: str,
+    resolution: int = 256,
+    extent: str = "NERF",
+    region=None,
+    frames=None,
+    shading: str = "EMISSION",
+    supersample: int = 1,
+) -> bpy.types.Object:
     """Bake Volume: the NeRF as posed, sampled on a grid of `resolution` voxels along the longest side of
     its box ("NERF"), of the cage as posed ("CAGE") or of an edit region ("REGION": `region`, the Empty or
     its name, needed when the NeRF has several), written to `folder` as <NeRF>_<frame>.vdb: the current
@@ -232,8 +315,14 @@ def bake_volume(nerf, folder: str, resolution: int = 256, extent: str = "NERF", 
     it, it casts shadows). Returns the Volume object that plays the files."""
     nerf = _nerf(nerf)
     _activate(nerf)
-    kwargs = {"directory": str(folder), "resolution": int(resolution), "extent": extent, "shading": shading,
-              "supersample": int(supersample), "region": getattr(region, "name", region) or ""}
+    kwargs = {
+        "directory": str(folder),
+        "resolution": int(resolution),
+        "extent": extent,
+        "shading": shading,
+        "supersample": int(supersample),
+        "region": getattr(region, "name", region) or "",
+    }
     if frames is not None:
         start, end = frames
         kwargs.update(frames="RANGE", frame_start=int(start), frame_end=int(end))

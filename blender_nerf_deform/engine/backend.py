@@ -39,7 +39,7 @@ def use_kernels(device="cpu") -> bool:
 
 
 def path() -> str:
-    """"numba" or "torch": what CPU work runs now."""
+    """ "numba" or "torch": what CPU work runs now."""
     return "numba" if use_kernels("cpu") else "torch"
 
 

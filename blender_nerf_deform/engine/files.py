@@ -19,8 +19,9 @@ import os
 import signal
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import BinaryIO
 
 from .errors import EngineError
 
@@ -53,10 +54,15 @@ def interrupts_deferred():
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
         yield  # None: a handler installed outside Python, which could not be put back
         return
-    held = [signal.SIGINT] + [getattr(signal, name) for name in ("SIGTERM", "SIGHUP")
-                              if hasattr(signal, name) and callable(signal.getsignal(getattr(signal, name)))]
+    held = [signal.SIGINT] + [
+        getattr(signal, name)
+        for name in ("SIGTERM", "SIGHUP")
+        if hasattr(signal, name) and callable(signal.getsignal(getattr(signal, name)))
+    ]
     received = []
-    previous = {signum: signal.signal(signum, lambda signum, frame: received.append((signum, frame))) for signum in held}
+    previous = {
+        signum: signal.signal(signum, lambda signum, frame: received.append((signum, frame))) for signum in held
+    }
     try:
         yield
     finally:
@@ -130,7 +136,7 @@ class StagedFiles:
         self._made: list[Path] = []  # folders this made, deepest first
         self.committed = False
 
-    def __enter__(self) -> "StagedFiles":
+    def __enter__(self) -> StagedFiles:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -266,8 +272,10 @@ def check_writable(path, folder: bool = False) -> None:
         existing = path
         while not existing.exists():
             if existing.is_symlink():  # a link to nothing: no folder can be made in its place
-                raise EngineError(f"cannot create folder {path}: {existing} is a symbolic link to "
-                                  f"{os.readlink(existing)}, which does not exist")
+                raise EngineError(
+                    f"cannot create folder {path}: {existing} is a symbolic link to "
+                    f"{os.readlink(existing)}, which does not exist"
+                )
             if existing.parent == existing:
                 break
             existing = existing.parent
@@ -332,8 +340,10 @@ def folder_lock(folder, name: str = ".lock", holder: str = "another process"):
             finally:
                 os.close(fd)
             by = f" (process {pid})" if pid.isdigit() else ""
-            raise EngineError(f"{folder} is in use by {holder}{by}, which holds {lock_path}; "
-                              "wait for it to finish or choose another folder")
+            raise EngineError(
+                f"{folder} is in use by {holder}{by}, which holds {lock_path}; "
+                "wait for it to finish or choose another folder"
+            )
         # The previous holder may have removed the file between our open and our lock: then we
         # locked a file nobody else will see, so take the one now at the path instead.
         try:

@@ -44,7 +44,7 @@ def kernel_files() -> list[Path]:
     return sorted(ENGINE_ROOT.rglob(f"*{KERNEL_SUFFIX}"))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def kernels_digest(stage: Path) -> str:
     """SHA-256 of the names and contents of the kernel files in the folder `stage`, in one."""
     h = hashlib.sha256()

@@ -32,14 +32,42 @@ aten = torch.ops.aten
 
 # Ops that allocate without writing or only read metadata: no kernel runs.
 _NO_KERNEL = {
-    "empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided", "detach", "alias", "lift_fresh",
-    "sym_size", "sym_stride", "sym_numel", "sym_storage_offset", "is_same_size", "_reshape_alias", "set_",
-    "resize_", "_unsafe_view", "view", "_to_copy_noop",
+    "empty",
+    "empty_like",
+    "empty_strided",
+    "new_empty",
+    "new_empty_strided",
+    "detach",
+    "alias",
+    "lift_fresh",
+    "sym_size",
+    "sym_stride",
+    "sym_numel",
+    "sym_storage_offset",
+    "is_same_size",
+    "_reshape_alias",
+    "set_",
+    "resize_",
+    "_unsafe_view",
+    "view",
+    "_to_copy_noop",
 }
 # Ops that make the host wait for the device on CUDA, whatever their arguments.
 _ALWAYS_SYNC = {
-    "_local_scalar_dense", "nonzero", "masked_select", "_unique", "_unique2", "unique_dim", "unique_consecutive",
-    "bincount", "masked_scatter", "masked_scatter_", "equal", "is_nonzero", "argwhere", "nonzero_numpy",
+    "_local_scalar_dense",
+    "nonzero",
+    "masked_select",
+    "_unique",
+    "_unique2",
+    "unique_dim",
+    "unique_consecutive",
+    "bincount",
+    "masked_scatter",
+    "masked_scatter_",
+    "equal",
+    "is_nonzero",
+    "argwhere",
+    "nonzero_numpy",
 }
 
 
@@ -66,7 +94,7 @@ def launches_kernel(func) -> bool:
     return func.overloadpacket.__name__ not in _NO_KERNEL
 
 
-_active: list["LaunchCounter"] = []
+_active: list[LaunchCounter] = []
 
 
 class LaunchCounter(TorchDispatchMode):
@@ -106,8 +134,12 @@ class LaunchCounter(TorchDispatchMode):
         self.syncs_by_op.clear()
 
     def summary(self, top: int = 12) -> dict:
-        return {"launches": self.launches, "syncs": self.syncs, "top_launches": dict(self.by_op.most_common(top)),
-                "syncs_by_op": dict(self.syncs_by_op)}
+        return {
+            "launches": self.launches,
+            "syncs": self.syncs,
+            "top_launches": dict(self.by_op.most_common(top)),
+            "syncs_by_op": dict(self.syncs_by_op),
+        }
 
 
 @contextlib.contextmanager

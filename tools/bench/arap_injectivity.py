@@ -71,7 +71,9 @@ def poses_from_blend(demo: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--demo", type=Path, default=REPO / "demo_out", help="make demo's output folder (default demo_out/)")
+    ap.add_argument(
+        "--demo", type=Path, default=REPO / "demo_out", help="make demo's output folder (default demo_out/)"
+    )
     ap.add_argument("--poses", type=Path, help="an .npz written by --save-poses (instead of demo.blend)")
     ap.add_argument("--save-poses", type=Path, help="write the poses read from demo.blend to this .npz")
     ap.add_argument("--repeat", type=int, default=3, help="timed solves per frame and variant (median)")
@@ -82,6 +84,7 @@ def main() -> int:
         np.savez_compressed(args.save_poses, **data)
 
     from geometry_common import machine
+
     from blender_nerf_deform.engine.geometry.barycentric import inversion_report
     from blender_nerf_deform.engine.geometry.deform import ArapDeformer, apply_affine, regions_to_cage, split_regions
     from blender_nerf_deform.engine.geometry.embedding import Embedding
@@ -92,24 +95,29 @@ def main() -> int:
     embedding = Embedding(tet_ids=tet_ids, corners=T[tet_ids], weights=data["embedding.weights"], n_outside=0)
     regions = split_regions(data["regions.handle_index"], data["regions.handle_counts"])
     pins, cut = data["regions.pin_index"], data.get("regions.cage_pin_index")
-    print(f"machine: {machine()}; cage {len(V)} vertices, {len(T)} tets; {len(regions)} handles "
-          f"({', '.join(str(len(r)) for r in regions)} surface vertices), {len(data['transforms'])} frames", flush=True)
+    print(
+        f"machine: {machine()}; cage {len(V)} vertices, {len(T)} tets; {len(regions)} handles "
+        f"({', '.join(str(len(r)) for r in regions)} surface vertices), {len(data['transforms'])} frames",
+        flush=True,
+    )
 
     surface_rest = embedding.apply(V)
     sizes = [float(np.linalg.norm(np.ptp(surface_rest[r], axis=0))) for r in regions]
 
     def residual(U, transforms):
         S = embedding.apply(U)
-        return max(float(np.linalg.norm(S[r] - apply_affine(surface_rest[r], A), axis=1).max()) / size
-                   for r, A, size in zip(regions, transforms, sizes))
+        return max(
+            float(np.linalg.norm(S[r] - apply_affine(surface_rest[r], A), axis=1).max()) / size
+            for r, A, size in zip(regions, transforms, sizes)
+        )
 
     # Before: the regions' cage vertices pinned to their targets (a handle's region wins over the cut).
     cage_regions = regions_to_cage(embedding, list(regions) + ([pins] if len(pins) else []), len(V))
-    fixed = cage_regions[len(regions):]
+    fixed = cage_regions[len(regions) :]
     if cut is not None and len(cut):
-        cut = np.setdiff1d(cut, np.concatenate(cage_regions[:len(regions)]))
+        cut = np.setdiff1d(cut, np.concatenate(cage_regions[: len(regions)]))
         fixed = [np.union1d(fixed[0], cut)] if fixed else [cut]
-    hard = ArapDeformer(V, T, cage_regions[:len(regions)], fixed)
+    hard = ArapDeformer(V, T, cage_regions[: len(regions)], fixed)
     surface = RegionDeformer(V, T, embedding, regions, pins, mode="ARAP", cage_pins=data.get("regions.cage_pin_index"))
     last = list(data["transforms"][-1])
     hard.solve(last)  # warm-up: kernels, factorizations
@@ -127,21 +135,42 @@ def main() -> int:
             times["surface"].append(time.perf_counter() - t0)
         again, _ = surface.solve(tr)
         ia, ib = inversion_report(V, a, T), inversion_report(V, b, T)
-        rows.append((int(frame), ia.n_inverted, ia.det.min(), residual(a, tr), np.median(times["hard"]) * 1e3,
-                     ib.n_inverted, ib.det.min(), stats["surface_residual"], np.median(times["surface"]) * 1e3,
-                     stats["iterations"], stats["barrier_tets"], bool(np.array_equal(again, b))))
-    print("| frame | inverted tets, hard | min det F | surface residual | solve ms | inverted tets, surface ARAP | "
-          "min det F | surface residual | solve ms | iterations | tets under the barrier | same result twice |")
+        rows.append(
+            (
+                int(frame),
+                ia.n_inverted,
+                ia.det.min(),
+                residual(a, tr),
+                np.median(times["hard"]) * 1e3,
+                ib.n_inverted,
+                ib.det.min(),
+                stats["surface_residual"],
+                np.median(times["surface"]) * 1e3,
+                stats["iterations"],
+                stats["barrier_tets"],
+                bool(np.array_equal(again, b)),
+            )
+        )
+    print(
+        "| frame | inverted tets, hard | min det F | surface residual | solve ms | inverted tets, surface ARAP | "
+        "min det F | surface residual | solve ms | iterations | tets under the barrier | same result twice |"
+    )
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for r in rows:
-        print(f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.2%} | {r[4]:.1f} | {r[5]} | {r[6]:.3f} | {r[7]:.2%} | {r[8]:.1f} | "
-              f"{r[9]} | {r[10]} | {'yes' if r[11] else 'NO'} |")
-    print(f"\nhard: {sum(r[1] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[1] for r in rows)} in all), "
-          f"surface residual up to {max(r[3] for r in rows):.2%}, solve median {np.median([r[4] for r in rows]):.1f} ms, "
-          f"max {max(r[4] for r in rows):.1f} ms")
-    print(f"surface ARAP: {sum(r[5] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[5] for r in rows)} in all), "
-          f"surface residual up to {max(r[7] for r in rows):.2%}, solve median {np.median([r[8] for r in rows]):.1f} ms, "
-          f"max {max(r[8] for r in rows):.1f} ms")
+        print(
+            f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.2%} | {r[4]:.1f} | {r[5]} | {r[6]:.3f} | {r[7]:.2%} | {r[8]:.1f} | "
+            f"{r[9]} | {r[10]} | {'yes' if r[11] else 'NO'} |"
+        )
+    print(
+        f"\nhard: {sum(r[1] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[1] for r in rows)} in all), "
+        f"surface residual up to {max(r[3] for r in rows):.2%}, solve median {np.median([r[4] for r in rows]):.1f} ms, "
+        f"max {max(r[4] for r in rows):.1f} ms"
+    )
+    print(
+        f"surface ARAP: {sum(r[5] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[5] for r in rows)} in all), "
+        f"surface residual up to {max(r[7] for r in rows):.2%}, solve median {np.median([r[8] for r in rows]):.1f} ms, "
+        f"max {max(r[8] for r in rows):.1f} ms"
+    )
     return 0
 
 

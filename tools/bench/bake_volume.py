@@ -111,11 +111,19 @@ def demo_rows(args, work: Path) -> list[dict]:
             cycles(bpy, args.samples)
             t0 = time.perf_counter()
             image = render_rgba(bpy, work / f"cycles_{frame}_{resolution}.exr")
-            row = {"case": "demo", "frame": frame, "resolution": resolution, "bake_s": round(wall, 2),
-                   "vdb_mib": round(file.stat().st_size / 2**20, 2), "worker_peak_mib": peak_memory_mib(pid),
-                   "cycles_s": round(time.perf_counter() - t0, 1), "samples": args.samples,
-                   "image": list(reference.shape[:2]), "psnr_rgba_db": round(psnr(image, reference), 2),
-                   "psnr_alpha_db": round(psnr(image[..., 3], reference[..., 3]), 2)}
+            row = {
+                "case": "demo",
+                "frame": frame,
+                "resolution": resolution,
+                "bake_s": round(wall, 2),
+                "vdb_mib": round(file.stat().st_size / 2**20, 2),
+                "worker_peak_mib": peak_memory_mib(pid),
+                "cycles_s": round(time.perf_counter() - t0, 1),
+                "samples": args.samples,
+                "image": list(reference.shape[:2]),
+                "psnr_rgba_db": round(psnr(image, reference), 2),
+                "psnr_alpha_db": round(psnr(image[..., 3], reference[..., 3]), 2),
+            }
             print(json.dumps(row), flush=True)
             rows.append(row)
             bpy.data.objects.remove(volume)
@@ -169,7 +177,9 @@ def fox_rows(args, work: Path) -> list[dict]:
         for view in args.views:
             cam = ds.cameras[view]
             reference = render_image(model, cam, sample_transform=only_the_head)["rgba"].astype(np.float64)
-            reference = np.concatenate([srgb_to_linear(reference[..., :3]) * reference[..., 3:], reference[..., 3:]], -1)
+            reference = np.concatenate(
+                [srgb_to_linear(reference[..., :3]) * reference[..., 3:], reference[..., 3:]], -1
+            )
             data = bpy.data.cameras.new(f"View {view}")
             data.sensor_fit, data.angle_x = "HORIZONTAL", 2 * math.atan(0.5 * cam.width / cam.fx)
             data.shift_x = (0.5 * cam.width - cam.cx) / cam.width
@@ -183,11 +193,18 @@ def fox_rows(args, work: Path) -> list[dict]:
             scene.render.resolution_percentage = 100
             cycles(bpy, args.samples)
             image = render_rgba(bpy, work / f"fox_{resolution}_{view}.exr")
-            row = {"case": "fox head", "view": view, "resolution": resolution, "grid": list(grid.shape),
-                   "bake_s": round(bake_s, 2), "vdb_mib": round(path.stat().st_size / 2**20, 2),
-                   "samples": args.samples, "image": [cam.height, cam.width],
-                   "psnr_rgba_db": round(psnr(image, reference), 2),
-                   "psnr_alpha_db": round(psnr(image[..., 3], reference[..., 3]), 2)}
+            row = {
+                "case": "fox head",
+                "view": view,
+                "resolution": resolution,
+                "grid": list(grid.shape),
+                "bake_s": round(bake_s, 2),
+                "vdb_mib": round(path.stat().st_size / 2**20, 2),
+                "samples": args.samples,
+                "image": [cam.height, cam.width],
+                "psnr_rgba_db": round(psnr(image, reference), 2),
+                "psnr_alpha_db": round(psnr(image[..., 3], reference[..., 3]), 2),
+            }
             # The head covers a part of the photo: also over the pixels either image covers.
             covered = (image[..., 3] > 0.01) | (reference[..., 3] > 0.01)
             row["covered_pixels"] = int(covered.sum())
@@ -206,8 +223,13 @@ def main(argv=None) -> int:
     p.add_argument("--data", default=str(REPO.parent / "shared" / "datasets" / "fox"), help="the fox dataset (--fox)")
     p.add_argument("--downscale", type=int, default=4, help="the fox's cameras at 1/K (default 4)")
     p.add_argument("--views", type=int, nargs="+", default=[0, 3], help="the fox's views rendered (default 0 3)")
-    p.add_argument("--resolutions", type=int, nargs="+", default=None, help="voxels along the box's longest side "
-                   "(default 128 256 512 for --demo, 128 256 for --fox)")
+    p.add_argument(
+        "--resolutions",
+        type=int,
+        nargs="+",
+        default=None,
+        help="voxels along the box's longest side (default 128 256 512 for --demo, 128 256 for --fox)",
+    )
     p.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel (default 64)")
     p.add_argument("--out", type=Path, help="keep the frames and files here (default: a temporary folder, removed)")
     args = p.parse_args(argv)

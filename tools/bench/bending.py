@@ -33,9 +33,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from blender_nerf_deform.engine.bend.cage_bend import CageBend  # noqa: E402
+from blender_nerf_deform.engine.geometry.mesh_io import load_cage  # noqa: E402
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
-from blender_nerf_deform.engine.geometry.mesh_io import load_cage  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
 
 
@@ -94,8 +94,10 @@ def main() -> int:
 
     # Identity pose first: the bending path's own error, and warm-up (numba compilation) of both paths.
     bend.set_deformed(rest)
-    identity = [render_image(model, cam, sample_transform=bend.sample_transform, occupancy=bend.occupancy)["rgba"]
-                for cam in ds.cameras]
+    identity = [
+        render_image(model, cam, sample_transform=bend.sample_transform, occupancy=bend.occupancy)["rgba"]
+        for cam in ds.cameras
+    ]
     _, pose_s = timed(lambda: bend.set_deformed(deformed))
     pose_times = [pose_s]
     for _ in range(4):
@@ -133,11 +135,18 @@ def main() -> int:
 
     plain_med, bent_med, pose_med = float(np.median(plain_s)), float(np.median(bent_s)), float(np.median(pose_times))
     res = {
-        "frames": len(ds.cameras), "size": f"{ds.width}x{ds.height}", "device": str(model.device),
-        "threads": torch.get_num_threads(), "tets": int(len(tets)), "cage_vertices": int(len(rest)),
-        "twist_degrees": args.degrees, "twist_from": args.start,
-        "inverted_tets": bend.inversion.n_inverted, "degenerate_tets": bend.inversion.n_degenerate,
-        "seconds_plain_median": plain_med, "seconds_bent_median": bent_med,
+        "frames": len(ds.cameras),
+        "size": f"{ds.width}x{ds.height}",
+        "device": str(model.device),
+        "threads": torch.get_num_threads(),
+        "tets": int(len(tets)),
+        "cage_vertices": int(len(rest)),
+        "twist_degrees": args.degrees,
+        "twist_from": args.start,
+        "inverted_tets": bend.inversion.n_inverted,
+        "degenerate_tets": bend.inversion.n_degenerate,
+        "seconds_plain_median": plain_med,
+        "seconds_bent_median": bent_med,
         "ratio_bent_over_plain": bent_med / plain_med,
         "ratio_per_camera_max": float(np.max(np.array(bent_s) / np.array(plain_s))),
         "seconds_pose_median": pose_med,

@@ -182,8 +182,15 @@ def squash_map(p: np.ndarray) -> np.ndarray:
     return p * SQUASH
 
 
-MAPS = {"scale": scale_map, "bend": bend_map, "twist": twist_map, "move_head": move_head_map,
-        "widen": widen_map, "stretch": stretch_map, "squash": squash_map}
+MAPS = {
+    "scale": scale_map,
+    "bend": bend_map,
+    "twist": twist_map,
+    "move_head": move_head_map,
+    "widen": widen_map,
+    "stretch": stretch_map,
+    "squash": squash_map,
+}
 
 # --------------------------------------------------------------------------- Blender
 
@@ -236,8 +243,13 @@ def _uv_material(bpy):
     sep = nodes.new("ShaderNodeSeparateXYZ")
     links.new(uv.outputs["UV"], sep.inputs["Vector"])
     hue = nodes.new("ShaderNodeValToRGB")
-    stops = ((0.0, (0.80, 0.04, 0.03)), (0.25, (0.90, 0.40, 0.02)), (0.5, (0.45, 0.75, 0.04)),
-             (0.75, (0.03, 0.45, 0.80)), (1.0, (0.50, 0.08, 0.75)))
+    stops = (
+        (0.0, (0.80, 0.04, 0.03)),
+        (0.25, (0.90, 0.40, 0.02)),
+        (0.5, (0.45, 0.75, 0.04)),
+        (0.75, (0.03, 0.45, 0.80)),
+        (1.0, (0.50, 0.08, 0.75)),
+    )
     _set_ramp(hue.color_ramp, stops)
     links.new(sep.outputs["Y"], hue.inputs["Fac"])
     around = nodes.new("ShaderNodeMath")
@@ -245,8 +257,10 @@ def _uv_material(bpy):
     around.inputs[1].default_value = 0.45  # sides' u spans about 0 .. 2.2 (perimeter / height)
     links.new(sep.outputs["X"], around.inputs[0])
     tone = nodes.new("ShaderNodeValToRGB")
-    _set_ramp(tone.color_ramp, ((0.0, (0.92, 0.92, 0.85)), (0.35, (0.12, 0.12, 0.16)),
-                                (0.7, (0.90, 0.60, 0.75)), (1.0, (0.30, 0.22, 0.10))))
+    _set_ramp(
+        tone.color_ramp,
+        ((0.0, (0.92, 0.92, 0.85)), (0.35, (0.12, 0.12, 0.16)), (0.7, (0.90, 0.60, 0.75)), (1.0, (0.30, 0.22, 0.10))),
+    )
     links.new(around.outputs["Value"], tone.inputs["Fac"])
     checker = nodes.new("ShaderNodeTexChecker")
     checker.inputs["Scale"].default_value = HEIGHT / CHECKER_SIZE
@@ -308,21 +322,39 @@ def render_ground_truth(work: Path, args, maps=None, rest_pose: bool = True) -> 
 
     objects = build_scene(bpy)
     rest = {obj.name: _vertices(obj) for obj in objects}
-    common = dict(radius=4.0, resolution=(args.resolution, args.resolution), samples=args.samples,
-                  seed=args.seed, test_count=args.test_views, threads=0, denoise=False)
+    common = dict(
+        radius=4.0,
+        resolution=(args.resolution, args.resolution),
+        samples=args.samples,
+        seed=args.seed,
+        test_count=args.test_views,
+        threads=0,
+        denoise=False,
+    )
     t0 = time.perf_counter()
     if rest_pose:
         train_res = args.train_resolution
-        make_dataset(work / "data", blend=None, progress=None, count=args.views,
-                     **{**common, "resolution": (train_res, train_res)})
-        print(f"ground truth: rest pose, {args.views} training + {args.test_views} test views, {train_res} px "
-              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+        make_dataset(
+            work / "data",
+            blend=None,
+            progress=None,
+            count=args.views,
+            **{**common, "resolution": (train_res, train_res)},
+        )
+        print(
+            f"ground truth: rest pose, {args.views} training + {args.test_views} test views, {train_res} px "
+            f"({time.perf_counter() - t0:.1f} s)",
+            flush=True,
+        )
         if train_res != args.resolution:  # the rest pose's test views at the scoring resolution
             t0 = time.perf_counter()
             make_dataset(work / "gt_rest", blend=None, progress=None, count=1, **common)
-            print(f"ground truth: rest pose, {args.test_views} test views, {args.resolution} px "
-                  f"({time.perf_counter() - t0:.1f} s)", flush=True)
-    for name in (MAPS if maps is None else maps):
+            print(
+                f"ground truth: rest pose, {args.test_views} test views, {args.resolution} px "
+                f"({time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
+    for name in MAPS if maps is None else maps:
         fn = MAPS[name]
         t0 = time.perf_counter()
         for obj in objects:
@@ -405,8 +437,13 @@ def cage_map_error(surface: np.ndarray, rest_vertices, tets, fn, px_per_unit: fl
 
     emb = embed_points(surface, rest_vertices, tets)
     err = np.linalg.norm(emb.apply(fn(rest_vertices)) - fn(surface), axis=1)
-    return {"mean": float(err.mean()), "max": float(err.max()), "mean_px": float(err.mean() * px_per_unit),
-            "max_px": float(err.max() * px_per_unit), "outside": emb.n_outside}
+    return {
+        "mean": float(err.mean()),
+        "max": float(err.max()),
+        "mean_px": float(err.mean() * px_per_unit),
+        "max_px": float(err.max() * px_per_unit),
+        "outside": emb.n_outside,
+    }
 
 
 def cage_components(tets: np.ndarray, n_vertices: int) -> int:
@@ -439,26 +476,48 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=100, help="training views (default 100)")
     ap.add_argument("--test-views", type=int, default=10, help="test views (default 10)")
     ap.add_argument("--resolution", type=int, default=128, help="image side in pixels (default 128)")
-    ap.add_argument("--train-resolution", type=int, default=None,
-                    help="training views' side in pixels (default: --resolution); test views stay at --resolution")
+    ap.add_argument(
+        "--train-resolution",
+        type=int,
+        default=None,
+        help="training views' side in pixels (default: --resolution); test views stay at --resolution",
+    )
     ap.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel (default 32, no denoiser)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--train-seconds", type=float, default=240.0, help="NeRF training budget (default 240)")
-    ap.add_argument("--train-steps", type=int, default=None,
-                    help="train for this many steps instead of --train-seconds (repeatable: the tests use it)")
-    ap.add_argument("--maps", default=None,
-                    help=f"comma-separated subset of the maps (default all: {','.join(MAPS)})")
-    ap.add_argument("--margin", type=float, default=0.3,
-                    help="cage margin (default 0.3: wider than half the 0.45 gap, so the cage is one piece)")
+    ap.add_argument(
+        "--train-steps",
+        type=int,
+        default=None,
+        help="train for this many steps instead of --train-seconds (repeatable: the tests use it)",
+    )
+    ap.add_argument("--maps", default=None, help=f"comma-separated subset of the maps (default all: {','.join(MAPS)})")
+    ap.add_argument(
+        "--margin",
+        type=float,
+        default=0.3,
+        help="cage margin (default 0.3: wider than half the 0.45 gap, so the cage is one piece)",
+    )
     ap.add_argument("--edge-length", type=float, default=None, help="cage tet edge length (default: the engine's)")
-    ap.add_argument("--refine-edge", type=float, default=None,
-                    help="refine the cage (`cage --refine-edge L --refine-box ...`) to longest edges <= L where the "
-                         "stretch map stretches (REFINE_BOX: its band, 0.15 either side), as a user who will stretch "
-                         "there would (default: no refinement)")
-    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
-                    help="device of training, extraction and renders (default: cuda if available, else cpu)")
-    ap.add_argument("--reuse", action="store_true",
-                    help="keep ground truth, checkpoint, mesh and cage already in --work; redo renders and scores")
+    ap.add_argument(
+        "--refine-edge",
+        type=float,
+        default=None,
+        help="refine the cage (`cage --refine-edge L --refine-box ...`) to longest edges <= L where the "
+        "stretch map stretches (REFINE_BOX: its band, 0.15 either side), as a user who will stretch "
+        "there would (default: no refinement)",
+    )
+    ap.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="device of training, extraction and renders (default: cuda if available, else cpu)",
+    )
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="keep ground truth, checkpoint, mesh and cage already in --work; redo renders and scores",
+    )
     args = ap.parse_args(argv)
     for flag, value in (("--resolution", args.resolution), ("--train-resolution", args.train_resolution)):
         if value is not None and value < 1:
@@ -479,8 +538,10 @@ def main(argv=None) -> int:
         train_w = json.loads((work / "data" / "transforms.json").read_text()).get("w")
         test_w = json.loads(test_json.read_text()).get("w")
         if (train_w, test_w) != (args.train_resolution, args.resolution):
-            raise SystemExit(f"--reuse: {work} holds {train_w} px training / {test_w} px test views, not "
-                             f"{args.train_resolution} / {args.resolution}: use another --work")
+            raise SystemExit(
+                f"--reuse: {work} holds {train_w} px training / {test_w} px test views, not "
+                f"{args.train_resolution} / {args.resolution}: use another --work"
+            )
     missing = [m for m in maps if not (work / f"gt_{m}" / "test" / "transforms.json").is_file()]
     if args.reuse and have_rest and not missing:
         reused.append("ground truth")
@@ -507,27 +568,56 @@ def main(argv=None) -> int:
         reused.append("checkpoint")
     else:
         budget = ["--steps", args.train_steps] if args.train_steps else ["--max-seconds", args.train_seconds]
-        timings["train_s"] = engine(work / "train.log", "train", "--data", work / "data", "--out", run, *budget,
-                                    "--seed", args.seed, "--device", args.device, "--overwrite")
+        timings["train_s"] = engine(
+            work / "train.log",
+            "train",
+            "--data",
+            work / "data",
+            "--out",
+            run,
+            *budget,
+            "--seed",
+            args.seed,
+            "--device",
+            args.device,
+            "--overwrite",
+        )
         print(f"train: {timings['train_s']:.0f} s; {_last_lines(work / 'train.log', 1)}", flush=True)
     if args.reuse and mesh.is_file():
         reused.append("mesh")
     else:
-        timings["extract_s"] = engine(work / "extract.log", "extract", "--nerf", ckpt, "--out", mesh, "--device", args.device)
+        timings["extract_s"] = engine(
+            work / "extract.log", "extract", "--nerf", ckpt, "--out", mesh, "--device", args.device
+        )
         print(f"extract: {timings['extract_s']:.0f} s; {_last_lines(work / 'extract.log', 2)}", flush=True)
     cage_args = {"margin": args.margin, "edge_length": args.edge_length}
     if args.refine_edge:
         cage_args["refine_edge"] = args.refine_edge
     cage_args_path = run / "cage_args.json"
-    if args.reuse and cage_path.is_file() and cage_args_path.is_file() and \
-            json.loads(cage_args_path.read_text()) == cage_args:
+    if (
+        args.reuse
+        and cage_path.is_file()
+        and cage_args_path.is_file()
+        and json.loads(cage_args_path.read_text()) == cage_args
+    ):
         reused.append("cage")
     else:
         extra = ["--edge-length", args.edge_length] if args.edge_length else []
         if args.refine_edge:
             extra += ["--refine-edge", args.refine_edge, "--refine-box", *np.ravel(REFINE_BOX)]
-        timings["cage_s"] = engine(work / "cage.log", "cage", "--nerf", ckpt, "--mesh", mesh, "--out", cage_path,
-                                   "--margin", args.margin, *extra)
+        timings["cage_s"] = engine(
+            work / "cage.log",
+            "cage",
+            "--nerf",
+            ckpt,
+            "--mesh",
+            mesh,
+            "--out",
+            cage_path,
+            "--margin",
+            args.margin,
+            *extra,
+        )
         cage_args_path.write_text(json.dumps(cage_args) + "\n")
         print(f"cage: {timings['cage_s']:.0f} s; {_last_lines(work / 'cage.log', 1)}", flush=True)
     if reused:
@@ -542,9 +632,11 @@ def main(argv=None) -> int:
     n_pieces = cage_components(tets, len(rest_v))
     a, b = GAP_FALLOFF
     in_falloff = int(((rest_v[:, 2] > a) & (rest_v[:, 2] < b)).sum())
-    print(f"cage: {len(tets)} tets, {len(rest_v)} vertices, {n_pieces} connected piece(s), tet edges median "
-          f"{np.median(edges):.3f} / max {edges.max():.3f}, {in_falloff} vertices inside the head's falloff band",
-          flush=True)
+    print(
+        f"cage: {len(tets)} tets, {len(rest_v)} vertices, {n_pieces} connected piece(s), tet edges median "
+        f"{np.median(edges):.3f} / max {edges.max():.3f}, {in_falloff} vertices inside the head's falloff band",
+        flush=True,
+    )
     surface = np.load(work / "gt_surface_vertices.npy")
 
     # Renders.
@@ -553,34 +645,80 @@ def main(argv=None) -> int:
         shutil.rmtree(renders)
     renders.mkdir()
     rows = []
-    t = engine(work / "render_rest.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out", renders / "rest",
-               "--device", args.device)
+    t = engine(
+        work / "render_rest.log",
+        "render",
+        "--nerf",
+        ckpt,
+        "--cameras",
+        test_json,
+        "--out",
+        renders / "rest",
+        "--device",
+        args.device,
+    )
     rest_score = score(renders / "rest", test_json)
     rest_gt = str(test_json.parent.relative_to(work))
     rows.append({"pose": "rest (no cage)", "gt": rest_gt, **rest_score, "render_s": t})
     np.save(work / "V_identity.npy", rest_v)
-    t = engine(work / "render_identity.log", "render", "--nerf", ckpt, "--cameras", test_json, "--out",
-               renders / "identity", "--cage", cage_path, "--deformed", work / "V_identity.npy", "--device", args.device)
-    rows.append({"pose": "identity (cage, V = rest)", "gt": rest_gt, **score(renders / "identity", test_json),
-                 "render_s": t})
+    t = engine(
+        work / "render_identity.log",
+        "render",
+        "--nerf",
+        ckpt,
+        "--cameras",
+        test_json,
+        "--out",
+        renders / "identity",
+        "--cage",
+        cage_path,
+        "--deformed",
+        work / "V_identity.npy",
+        "--device",
+        args.device,
+    )
+    rows.append(
+        {"pose": "identity (cage, V = rest)", "gt": rest_gt, **score(renders / "identity", test_json), "render_s": t}
+    )
     for name, fn in maps.items():
         V = fn(rest_v)
         np.save(work / f"V_{name}.npy", V)
         gt_json = work / f"gt_{name}" / "test" / "transforms.json"
-        t = engine(work / f"render_{name}.log", "render", "--nerf", ckpt, "--cameras", gt_json, "--out",
-                   renders / name, "--cage", cage_path, "--deformed", work / f"V_{name}.npy", "--device", args.device)
-        row = {"pose": name, "gt": f"gt_{name}/test", **score(renders / name, gt_json), "render_s": t,
-               "undeformed_vs_gt": score(renders / "rest", gt_json)["psnr"],
-               "inverted_tets": inversion_report(rest_v, V, tets).n_inverted,
-               "cage_error": cage_map_error(surface, rest_v, tets, fn, px_per_unit)}
+        t = engine(
+            work / f"render_{name}.log",
+            "render",
+            "--nerf",
+            ckpt,
+            "--cameras",
+            gt_json,
+            "--out",
+            renders / name,
+            "--cage",
+            cage_path,
+            "--deformed",
+            work / f"V_{name}.npy",
+            "--device",
+            args.device,
+        )
+        row = {
+            "pose": name,
+            "gt": f"gt_{name}/test",
+            **score(renders / name, gt_json),
+            "render_s": t,
+            "undeformed_vs_gt": score(renders / "rest", gt_json)["psnr"],
+            "inverted_tets": inversion_report(rest_v, V, tets).n_inverted,
+            "cage_error": cage_map_error(surface, rest_v, tets, fn, px_per_unit),
+        }
         rows.append(row)
 
     # Table.
     ref = rest_score["psnr"]
     failed = []
     print()
-    print(f"| pose | PSNR (RGB on white) | vs rest | alpha PSNR | target (>= {ref - TARGET_DB:.2f} dB) "
-          f"| undeformed NeRF vs this GT | cage-map surface error mean / max (px) | inverted tets | render s |")
+    print(
+        f"| pose | PSNR (RGB on white) | vs rest | alpha PSNR | target (>= {ref - TARGET_DB:.2f} dB) "
+        f"| undeformed NeRF vs this GT | cage-map surface error mean / max (px) | inverted tets | render s |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         deformed = "undeformed_vs_gt" in r
@@ -592,18 +730,33 @@ def main(argv=None) -> int:
         verdict = ("met" if ok else "MISSED") if deformed else "-"
         baseline = f"{r['undeformed_vs_gt']:.2f} dB" if deformed else "-"
         geometry = f"{ce['mean_px']:.3f} / {ce['max_px']:.3f}" if ce else "-"
-        print(f"| {r['pose']} | {r['psnr']:.2f} dB | {delta:+.2f} dB | {r['psnr_alpha']:.2f} dB | {verdict} | "
-              f"{baseline} | {geometry} | {r.get('inverted_tets', '-')} | {r['render_s']:.1f} |")
+        print(
+            f"| {r['pose']} | {r['psnr']:.2f} dB | {delta:+.2f} dB | {r['psnr_alpha']:.2f} dB | {verdict} | "
+            f"{baseline} | {geometry} | {r.get('inverted_tets', '-')} | {r['render_s']:.1f} |"
+        )
     total = time.perf_counter() - started
-    print(f"\n{args.test_views} test views, {args.resolution}x{args.resolution} (trained on "
-          f"{args.train_resolution} px views); PSNR averaged over views; "
-          f"{px_per_unit:.1f} px per world unit at the cameras' distance; total {total:.0f} s"
-          + (f" (reused: {', '.join(reused)})" if reused else ""))
-    results = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-               "rows": rows, "timings": timings, "reused": reused, "cage": {
-                   "tets": len(tets), "vertices": len(rest_v), "pieces": n_pieces,
-                   "edge_median": float(np.median(edges)), "edge_max": float(edges.max()),
-                   "vertices_in_falloff": in_falloff}, "total_s": total, "failed": failed}
+    print(
+        f"\n{args.test_views} test views, {args.resolution}x{args.resolution} (trained on "
+        f"{args.train_resolution} px views); PSNR averaged over views; "
+        f"{px_per_unit:.1f} px per world unit at the cameras' distance; total {total:.0f} s"
+        + (f" (reused: {', '.join(reused)})" if reused else "")
+    )
+    results = {
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "rows": rows,
+        "timings": timings,
+        "reused": reused,
+        "cage": {
+            "tets": len(tets),
+            "vertices": len(rest_v),
+            "pieces": n_pieces,
+            "edge_median": float(np.median(edges)),
+            "edge_max": float(edges.max()),
+            "vertices_in_falloff": in_falloff,
+        },
+        "total_s": total,
+        "failed": failed,
+    }
     (work / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     if failed:
         print(f"target missed (more than {TARGET_DB} dB below the rest pose): {', '.join(failed)}")

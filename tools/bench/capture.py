@@ -40,7 +40,9 @@ def main(argv=None) -> int:
     p.add_argument("--test-views", type=int, default=8)
     p.add_argument("--size", type=int, default=200)
     p.add_argument("--samples", type=int, default=16)
-    p.add_argument("--work", type=Path, default=None, help="folder for the scene and datasets (default: a temporary one)")
+    p.add_argument(
+        "--work", type=Path, default=None, help="folder for the scene and datasets (default: a temporary one)"
+    )
     args = p.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_capture_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -64,16 +66,24 @@ def main(argv=None) -> int:
         common = dict(count=args.views, test_count=args.test_views, radius=4.0, seed=0, samples=args.samples)
 
         t0 = time.perf_counter()
-        result = bpy.ops.nerf_deform.capture_dataset(output=str(work / "operator"), resolution=(args.size, args.size),
-                                                     engine="CYCLES", **common)
+        result = bpy.ops.nerf_deform.capture_dataset(
+            output=str(work / "operator"), resolution=(args.size, args.size), engine="CYCLES", **common
+        )
         operator_s = time.perf_counter() - t0
         assert result == {"FINISHED"}, result
         meta = json.loads((work / "operator" / "transforms.json").read_text())
         gen = meta["generator"]
 
         t0 = time.perf_counter()
-        make_dataset(work / "in_process", blend=None, progress=None, resolution=args.size, target=tuple(gen["target"]),
-                     aabb=tuple(map(tuple, meta["aabb"])), **common)
+        make_dataset(
+            work / "in_process",
+            blend=None,
+            progress=None,
+            resolution=args.size,
+            target=tuple(gen["target"]),
+            aabb=tuple(map(tuple, meta["aabb"])),
+            **common,
+        )
         in_process_s = time.perf_counter() - t0
     finally:
         blender_nerf_deform.unregister()
@@ -81,11 +91,15 @@ def main(argv=None) -> int:
     worst = 0
     for split in ("", "test"):
         for frame in json.loads((work / "operator" / split / "transforms.json").read_text())["frames"]:
-            a, b = (np.asarray(Image.open(work / run / split / frame["file_path"]), dtype=np.int16)
-                    for run in ("operator", "in_process"))
+            a, b = (
+                np.asarray(Image.open(work / run / split / frame["file_path"]), dtype=np.int16)
+                for run in ("operator", "in_process")
+            )
             worst = max(worst, int(np.abs(a - b).max()))
-    print(f"scene: {[o.name for o in objects]}, {total} views ({args.views} + {args.test_views} test) of "
-          f"{args.size} px, Cycles CPU {args.samples} samples, radius 4, seed 0")
+    print(
+        f"scene: {[o.name for o in objects]}, {total} views ({args.views} + {args.test_views} test) of "
+        f"{args.size} px, Cycles CPU {args.samples} samples, radius 4, seed 0"
+    )
     print(f"operator (Capture Dataset, execute):  {operator_s:.1f} s  ({operator_s / total:.3f} s/view)")
     print(f"in-process (make_dataset):            {in_process_s:.1f} s  ({in_process_s / total:.3f} s/view)")
     print(f"ratio operator / in-process:          {operator_s / in_process_s:.3f}")

@@ -98,23 +98,41 @@ def main() -> int:
         for _ in range(args.count_steps):
             with LaunchCounter() as c:
                 info = trainer.step()
-            steps.append({"launches": c.launches, "syncs": c.syncs, "rays": info["rays"],
-                          "samples_per_ray": round(info["samples_per_ray"], 1),
-                          "density_samples_per_ray": round(info.get("density_samples_per_ray", 0.0), 1), "top": c.summary(8)["top_launches"],
-                          "syncs_by_op": dict(c.syncs_by_op)})
+            steps.append(
+                {
+                    "launches": c.launches,
+                    "syncs": c.syncs,
+                    "rays": info["rays"],
+                    "samples_per_ray": round(info["samples_per_ray"], 1),
+                    "density_samples_per_ray": round(info.get("density_samples_per_ray", 0.0), 1),
+                    "top": c.summary(8)["top_launches"],
+                    "syncs_by_op": dict(c.syncs_by_op),
+                }
+            )
         launches = [s["launches"] for s in steps]
         syncs = [s["syncs"] for s in steps]
-        out["train"] = {"steps": len(steps), "launches_mean": round(float(np.mean(launches)), 1),
-                        "launches_max": max(launches), "launches_median": float(np.median(launches)),
-                        "syncs_mean": round(float(np.mean(syncs)), 2), "syncs_max": max(syncs),
-                        "rays_mean": round(float(np.mean([s["rays"] for s in steps])), 1),
-                        "a_step": steps[-1]}
+        out["train"] = {
+            "steps": len(steps),
+            "launches_mean": round(float(np.mean(launches)), 1),
+            "launches_max": max(launches),
+            "launches_median": float(np.median(launches)),
+            "syncs_mean": round(float(np.mean(syncs)), 2),
+            "syncs_max": max(syncs),
+            "rays_mean": round(float(np.mean([s["rays"] for s in steps])), 1),
+            "a_step": steps[-1],
+        }
         model.eval()
         c2w = np.asarray(ds.cameras[0].c2w, dtype=np.float64)
         cam0 = ds.cameras[0]
-        camera = Camera(fx=cam0.fx * args.size / cam0.width, fy=cam0.fy * args.size / cam0.height,
-                        cx=cam0.cx * args.size / cam0.width, cy=cam0.cy * args.size / cam0.height,
-                        width=args.size, height=args.size, c2w=c2w)
+        camera = Camera(
+            fx=cam0.fx * args.size / cam0.width,
+            fy=cam0.fy * args.size / cam0.height,
+            cx=cam0.cx * args.size / cam0.width,
+            cy=cam0.cy * args.size / cam0.height,
+            width=args.size,
+            height=args.size,
+            c2w=c2w,
+        )
         rest, tets = box_cage((4, 4, 4), lo=model.config.aabb[:3], hi=model.config.aabb[3:])
         bend = CageBend(model, rest, tets).set_deformed(twisted(rest, model.config.aabb))
         rounds = count_rounds()
@@ -126,13 +144,21 @@ def main() -> int:
                 frame = render_image(model, camera, **kwargs)
             seconds = time.perf_counter() - t
             n_rounds = max(rounds["n"], 1)
-            out[name] = {"launches": c.launches, "syncs": c.syncs, "rounds": rounds["n"],
-                         "launches_per_megapixel": round(c.launches / megapixels),
-                         "syncs_per_round": round(c.syncs / n_rounds, 2),
-                         "launches_per_round": round(c.launches / n_rounds, 1), "seconds_cpu": round(seconds, 2),
-                         "samples_per_ray": [round(float(frame.get("density_samples_per_ray", 0)), 2),
-                                             round(float(frame.get("color_samples_per_ray", 0)), 2)],
-                         "top": c.summary(10)["top_launches"], "syncs_by_op": dict(c.syncs_by_op)}
+            out[name] = {
+                "launches": c.launches,
+                "syncs": c.syncs,
+                "rounds": rounds["n"],
+                "launches_per_megapixel": round(c.launches / megapixels),
+                "syncs_per_round": round(c.syncs / n_rounds, 2),
+                "launches_per_round": round(c.launches / n_rounds, 1),
+                "seconds_cpu": round(seconds, 2),
+                "samples_per_ray": [
+                    round(float(frame.get("density_samples_per_ray", 0)), 2),
+                    round(float(frame.get("color_samples_per_ray", 0)), 2),
+                ],
+                "top": c.summary(10)["top_launches"],
+                "syncs_by_op": dict(c.syncs_by_op),
+            }
     text = json.dumps(out, indent=1)
     print(text)
     if args.json:

@@ -97,20 +97,24 @@ def command_line(args, work: Path, region_json: Path) -> dict:
     engine = [sys.executable, "-m", "blender_nerf_deform.engine"]
     out = {}
     for label, extra_extract, extra_cage in (
-            ("whole box", [], []),
-            ("region", ["--region", region_json, "--pick", *map(str, HEAD_POINT)], ["--region", region_json])):
+        ("whole box", [], []),
+        ("region", ["--region", region_json, "--pick", *map(str, HEAD_POINT)], ["--region", region_json]),
+    ):
         mesh, cage = work / f"{label.replace(' ', '_')}.ply", work / f"{label.replace(' ', '_')}.npz"
         row = {}
-        t, proc = _timed([*engine, "extract", "--nerf", args.nerf, "--out", mesh, "--resolution", args.resolution,
-                          *extra_extract])
+        t, proc = _timed(
+            [*engine, "extract", "--nerf", args.nerf, "--out", mesh, "--resolution", args.resolution, *extra_extract]
+        )
         if proc is None or proc.returncode != 0:
             row["extract_error"] = (proc.stderr.strip().splitlines() or ["?"])[-1] if proc else "timeout"
             out[label] = row
             continue
         v, f, _c = read_ply(mesh)
         row.update(extract_s=round(t, 1), vertices=len(v), faces=len(f))
-        t, proc = _timed([*engine, "cage", "--nerf", args.nerf, "--mesh", mesh, "--out", cage, *extra_cage],
-                         timeout=args.cage_timeout)
+        t, proc = _timed(
+            [*engine, "cage", "--nerf", args.nerf, "--mesh", mesh, "--out", cage, *extra_cage],
+            timeout=args.cage_timeout,
+        )
         if proc is None:
             row["cage_error"] = f"not done within {args.cage_timeout} s"
         elif proc.returncode != 0:
@@ -118,8 +122,12 @@ def command_line(args, work: Path, region_json: Path) -> dict:
             row["cage_s"] = round(t, 1)
         else:
             c = load_cage(cage)
-            row.update(cage_s=round(t, 1), cage_tets=len(c["tets"]), cage_vertices=len(c["vertices"]),
-                       pinned=int(len(c.get("pinned_vertices", []))))
+            row.update(
+                cage_s=round(t, 1),
+                cage_tets=len(c["tets"]),
+                cage_vertices=len(c["vertices"]),
+                pinned=int(len(c.get("pinned_vertices", []))),
+            )
         out[label] = row
         print(f"{label}: {row}", flush=True)
     return out
@@ -179,10 +187,10 @@ def blender_part(args, work: Path, region: dict) -> dict:
 
     import blender_nerf_deform
     from blender_nerf_deform.addon import api
+    from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage
+    from blender_nerf_deform.addon.data.camera import pinhole_from_blender
     from blender_nerf_deform.addon.deform import poses as deformation
     from blender_nerf_deform.addon.worker import jobs
-    from blender_nerf_deform.addon.data.camera import pinhole_from_blender
-    from blender_nerf_deform.addon.data.cage_store import cage_pins, load_cage
     from blender_nerf_deform.engine.geometry.barycentric import boundary_faces
     from blender_nerf_deform.engine.nerf.dataset import load_dataset
 
@@ -244,8 +252,12 @@ def blender_part(args, work: Path, region: dict) -> dict:
         up = np.mean([c.c2w[:3, 1] for c in ds.cameras], axis=0)
         up /= np.linalg.norm(up)
         turn = Matrix.Rotation(math.radians(args.angle), 4, Vector(up.tolist()))
-        handle.matrix_world = Matrix.Translation(handle.matrix_world.translation) @ turn @ Matrix.Translation(
-            -handle.matrix_world.translation) @ handle.matrix_world
+        handle.matrix_world = (
+            Matrix.Translation(handle.matrix_world.translation)
+            @ turn
+            @ Matrix.Translation(-handle.matrix_world.translation)
+            @ handle.matrix_world
+        )
         bpy.context.view_layer.update()
         t0 = time.perf_counter()
         edited, _ = _render_exr(bpy, work / "edited.exr")
@@ -273,7 +285,8 @@ def blender_part(args, work: Path, region: dict) -> dict:
         change = np.abs(edited - rest)
         result = {
             "psnr_outside_cages_db": psnr,
-            "pixels_outside_cages": int(outside.sum()), "pixels": int(outside.size),
+            "pixels_outside_cages": int(outside.sum()),
+            "pixels": int(outside.size),
             "max_abs_diff_outside": float(change[outside].max()),
             "head_pixels": int(head_px.sum()),
             "head_mean_rgb_change": float(change[head_px][:, :3].mean()),
@@ -282,8 +295,10 @@ def blender_part(args, work: Path, region: dict) -> dict:
             "plaque_pixels": int(plaque_px.sum()),
             "plaque_min_alpha": float(edited[plaque_px][:, 3].min()) if plaque_px.any() else None,
             "frame_min_alpha": float(edited[..., 3].min()),
-            "surface_vertices": len(co), "head_vertices": int(len(head)),
-            "cage_vertices": len(rest_cage), "cage_tets": len(tets),
+            "surface_vertices": len(co),
+            "head_vertices": int(len(head)),
+            "cage_vertices": len(rest_cage),
+            "cage_tets": len(tets),
             "pinned": int(len(cage_pins(cage_object))),
             **{k: round(v, 2) for k, v in timings.items()},
         }
@@ -325,12 +340,22 @@ def main(argv=None) -> int:
     print(json.dumps(figures))
     print(f"frames and masks in {work}")
     # The checks: outside both cages nothing changed, the head did move, no NaN, no hole at the cut.
-    failed = [what for what, ok in (
-        (f"PSNR outside the cages {b['psnr_outside_cages_db']:.1f} dB >= 45", b["psnr_outside_cages_db"] >= 45.0),
-        (f"the head moved (mean colour change {b['head_mean_rgb_change']:.3f} > 0.02)", b["head_mean_rgb_change"] > 0.02),
-        (f"no NaN pixel ({b['nan_pixels']})", b["nan_pixels"] == 0),
-        (f"no hole at the cut (plaque min alpha {b['plaque_min_alpha']} >= 0.5)",
-         b["plaque_min_alpha"] is not None and b["plaque_min_alpha"] >= 0.5)) if not ok]
+    failed = [
+        what
+        for what, ok in (
+            (f"PSNR outside the cages {b['psnr_outside_cages_db']:.1f} dB >= 45", b["psnr_outside_cages_db"] >= 45.0),
+            (
+                f"the head moved (mean colour change {b['head_mean_rgb_change']:.3f} > 0.02)",
+                b["head_mean_rgb_change"] > 0.02,
+            ),
+            (f"no NaN pixel ({b['nan_pixels']})", b["nan_pixels"] == 0),
+            (
+                f"no hole at the cut (plaque min alpha {b['plaque_min_alpha']} >= 0.5)",
+                b["plaque_min_alpha"] is not None and b["plaque_min_alpha"] >= 0.5,
+            ),
+        )
+        if not ok
+    ]
     for what in failed:
         print(f"FAILED: {what}", file=sys.stderr)
     return 1 if failed else 0

@@ -107,9 +107,16 @@ def main(argv=None) -> int:
     parser.add_argument("--cameras", type=Path, required=True, help="a transforms.json: its first frame is the view")
     parser.add_argument("--downscale", type=float, default=1.0, help="the frame's size divided by this (default 1)")
     parser.add_argument("--repeats", type=int, default=3, help="fresh Blenders per mode (default 3)")
-    parser.add_argument("--work", type=Path, default=REPO / "runs" / "bench_first_frame", help="where the .blend is made")
-    parser.add_argument("--modes", nargs="+", choices=("cold", "prewarmed"), default=["cold", "prewarmed"],
-                        help="what to measure (default both; an add-on before Start Worker on Open has only cold)")
+    parser.add_argument(
+        "--work", type=Path, default=REPO / "runs" / "bench_first_frame", help="where the .blend is made"
+    )
+    parser.add_argument(
+        "--modes",
+        nargs="+",
+        choices=("cold", "prewarmed"),
+        default=["cold", "prewarmed"],
+        help="what to measure (default both; an add-on before Start Worker on Open has only cold)",
+    )
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--child", choices=("build", "cold", "prewarmed"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -127,13 +134,25 @@ def main(argv=None) -> int:
         parser.error("--repeats must be at least 1")
 
     def child(kind: str) -> dict | None:
-        cmd = [sys.executable, __file__, "--nerf", str(args.nerf), "--cameras", str(args.cameras), "--downscale",
-               str(args.downscale), "--work", str(args.work), "--child", kind]
+        cmd = [
+            sys.executable,
+            __file__,
+            "--nerf",
+            str(args.nerf),
+            "--cameras",
+            str(args.cameras),
+            "--downscale",
+            str(args.downscale),
+            "--work",
+            str(args.work),
+            "--child",
+            kind,
+        ]
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
         if proc.returncode != 0:
             raise SystemExit(f"{kind} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}")
         lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-        return json.loads(lines[-1][len("RESULT "):]) if lines else None
+        return json.loads(lines[-1][len("RESULT ") :]) if lines else None
 
     child("build")
     runs = []

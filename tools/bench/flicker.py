@@ -107,7 +107,11 @@ def child(config: dict) -> int:
         for frame in range(1, frames + 1):  # keyed every frame: on the circle, eased in and out
             s = (frame - 1) / (frames - 1)
             degrees = config["orbit_degrees"] * s * s * (3.0 - 2.0 * s)
-            turn = Matrix.Translation(target) @ Matrix.Rotation(math.radians(degrees), 4, "Z") @ Matrix.Translation(-target)
+            turn = (
+                Matrix.Translation(target)
+                @ Matrix.Rotation(math.radians(degrees), 4, "Z")
+                @ Matrix.Translation(-target)
+            )
             cam.matrix_world = turn @ start
             cam.keyframe_insert("location", frame=frame)
             cam.keyframe_insert("rotation_euler", frame=frame)
@@ -141,9 +145,12 @@ def flicker_figures(images: np.ndarray) -> dict:
     mean_d = float(d.mean())
     rough = float(np.abs(d[2:] - 2.0 * d[1:-1] + d[:-2]).mean() / max(mean_d, 1e-9))
     return {
-        "mean_d": mean_d, "max_d": float(d.max()),
-        "jerk_mean_rel": float(jerk.mean() / max(mean_d, 1e-9)), "jerk_max_rel": float(jerk.max() / max(mean_d, 1e-9)),
-        "spike_max": float(spikes[worst]), "spike_frame": worst + 2,  # the frame whose difference to its previous spikes
+        "mean_d": mean_d,
+        "max_d": float(d.max()),
+        "jerk_mean_rel": float(jerk.mean() / max(mean_d, 1e-9)),
+        "jerk_max_rel": float(jerk.max() / max(mean_d, 1e-9)),
+        "spike_max": float(spikes[worst]),
+        "spike_frame": worst + 2,  # the frame whose difference to its previous spikes
         "spike_frames_flagged": [int(i + 2) for i in np.flatnonzero(spikes > SPIKE_FLAG)],
         "rough": rough,
         "d": [float(x) for x in d],
@@ -186,29 +193,46 @@ def main(argv=None) -> int:
             results[mode] = figures
             continue
         out.mkdir()
-        config = {"blend": str(blend), "frames": args.frames, "mode": mode, "out": str(out),
-                  "orbit_degrees": args.orbit_degrees, "target": [-0.25, 0.0, 0.05]}  # tools/demo.py's camera target
+        config = {
+            "blend": str(blend),
+            "frames": args.frames,
+            "mode": mode,
+            "out": str(out),
+            "orbit_degrees": args.orbit_degrees,
+            "target": [-0.25, 0.0, 0.05],
+        }  # tools/demo.py's camera target
         config_path = args.work / f"{mode}.json"
         config_path.write_text(json.dumps(config))
-        proc = subprocess.run([sys.executable, __file__, "--child", str(config_path)], cwd=REPO, text=True,
-                              env={**os.environ, "BLENDER_USER_RESOURCES": str(user)},
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        proc = subprocess.run(
+            [sys.executable, __file__, "--child", str(config_path)],
+            cwd=REPO,
+            text=True,
+            env={**os.environ, "BLENDER_USER_RESOURCES": str(user)},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
         (args.work / f"{mode}.log").write_text(proc.stdout)
         if proc.returncode != 0:
-            raise SystemExit(f"bench_flicker: the {mode} render failed (exit {proc.returncode}):\n{proc.stdout[-3000:]}")
+            raise SystemExit(
+                f"bench_flicker: the {mode} render failed (exit {proc.returncode}):\n{proc.stdout[-3000:]}"
+            )
         figures = flicker_figures(load_frames(out, args.frames))
         figures.update(_inversions(proc.stdout))
         results[mode] = figures
     (args.work / "results.json").write_text(json.dumps(results, indent=1))
     print(f"{args.frames} frames each; the orbit turns {args.orbit_degrees:g} degrees (8-bit units, on white)")
-    print(f"{'animation':10s} {'mean d':>8s} {'max d':>8s} {'jerk mean/d':>12s} {'jerk max/d':>11s} "
-          f"{'spike max (frame)':>18s} {'flagged':>8s} {'rough':>7s} "
-          f"{'inverted (frames, max)':>23s}")
+    print(
+        f"{'animation':10s} {'mean d':>8s} {'max d':>8s} {'jerk mean/d':>12s} {'jerk max/d':>11s} "
+        f"{'spike max (frame)':>18s} {'flagged':>8s} {'rough':>7s} "
+        f"{'inverted (frames, max)':>23s}"
+    )
     for mode in ("bend", "orbit"):
         r = results[mode]
-        print(f"{mode:10s} {r['mean_d']:8.3f} {r['max_d']:8.3f} {r['jerk_mean_rel']:12.3f} {r['jerk_max_rel']:11.3f} "
-              f"{r['spike_max']:11.2f} ({r['spike_frame']:2d})  {len(r['spike_frames_flagged']):8d} {r['rough']:7.3f} "
-              f"{r['frames_reporting_inverted_tets']:13d}, {r['max_inverted_tets']}")
+        print(
+            f"{mode:10s} {r['mean_d']:8.3f} {r['max_d']:8.3f} {r['jerk_mean_rel']:12.3f} {r['jerk_max_rel']:11.3f} "
+            f"{r['spike_max']:11.2f} ({r['spike_frame']:2d})  {len(r['spike_frames_flagged']):8d} {r['rough']:7.3f} "
+            f"{r['frames_reporting_inverted_tets']:13d}, {r['max_inverted_tets']}"
+        )
     return 0
 
 

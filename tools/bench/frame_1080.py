@@ -92,15 +92,19 @@ def psnr(a, b) -> float:
 def demo_scene(demo: Path, width: int, height: int):
     """(checkpoint, camera, pose function () -> (deformed vertices, solve seconds), rest vertices, tets)."""
     from blender_nerf_deform.engine.geometry.deform import split_regions
-    from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
     from blender_nerf_deform.engine.geometry.embedding import Embedding
+    from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
     from blender_nerf_deform.engine.service.ops import _camera
 
     blend = demo / "demo.blend"
     cache = demo / f"bench_frame_{width}x{height}.npz"
     if not cache.is_file() or cache.stat().st_mtime < blend.stat().st_mtime:
-        proc = subprocess.run([sys.executable, __file__, "--child-extract", str(blend), str(cache), str(width), str(height)],
-                              cwd=REPO, capture_output=True, text=True)
+        proc = subprocess.run(
+            [sys.executable, __file__, "--child-extract", str(blend), str(cache), str(width), str(height)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+        )
         if proc.returncode != 0:
             raise SystemExit(f"reading {blend} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}")
     data = np.load(cache)
@@ -113,8 +117,16 @@ def demo_scene(demo: Path, width: int, height: int):
     embedding = Embedding(tet_ids=tet_ids, corners=tets[tet_ids], weights=data["embedding/weights"], n_outside=0)
     regions = split_regions(data["regions/handle_index"], data["regions/handle_counts"])
     t0 = time.perf_counter()
-    deformer = RegionDeformer(rest, tets, embedding, regions, data["regions/pin_index"], pose.get("handle_names") or None,
-                              pose.get("mode", "ARAP"), cage_pins=data["regions/cage_pin_index"])
+    deformer = RegionDeformer(
+        rest,
+        tets,
+        embedding,
+        regions,
+        data["regions/pin_index"],
+        pose.get("handle_names") or None,
+        pose.get("mode", "ARAP"),
+        cage_pins=data["regions/cage_pin_index"],
+    )
     precompute_s = time.perf_counter() - t0
     transforms = [np.asarray(t, dtype=np.float64) for t in pose["transforms"]]
 
@@ -158,8 +170,15 @@ def bench_scene(name, scene, paths, reps, save: Path | None, no_step_refine: boo
     # Warm-up (numba compilation, allocator) on a small frame of the same camera.
     from dataclasses import replace
 
-    small = replace(camera, width=camera.width // 8, height=camera.height // 8, fx=camera.fx / 8, fy=camera.fy / 8,
-                    cx=camera.cx / 8, cy=camera.cy / 8)
+    small = replace(
+        camera,
+        width=camera.width // 8,
+        height=camera.height // 8,
+        fx=camera.fx / 8,
+        fy=camera.fy / 8,
+        cx=camera.cx / 8,
+        cy=camera.cy / 8,
+    )
     for path in paths:
         with renderer.render_path(path):
             PosedRenderer(model).render(small)
@@ -195,18 +214,27 @@ def bench_scene(name, scene, paths, reps, save: Path | None, no_step_refine: boo
         med = {k: float(np.median(v)) for k, v in times.items()}
         for mode in ("plain", "bent"):
             out = images[(path, mode)]
-            row = {"scene": name, "path": path, "frame": "bent" if mode == "bent" else "undeformed",
-                   "size": f"{camera.width}x{camera.height}", "seconds": med[mode], "ms_per_mp": 1e3 * med[mode] / mp,
-                   "density_samples_per_ray": out["density_samples_per_ray"],
-                   "color_samples_per_ray": out["color_samples_per_ray"],
-                   "alpha_mean": float(out["rgba"][..., 3].mean())}
+            row = {
+                "scene": name,
+                "path": path,
+                "frame": "bent" if mode == "bent" else "undeformed",
+                "size": f"{camera.width}x{camera.height}",
+                "seconds": med[mode],
+                "ms_per_mp": 1e3 * med[mode] / mp,
+                "density_samples_per_ray": out["density_samples_per_ray"],
+                "color_samples_per_ray": out["color_samples_per_ray"],
+                "alpha_mean": float(out["rgba"][..., 3].mean()),
+            }
             if mode == "bent":
-                row.update(pose_seconds=med["pose"], arap_solve_seconds=med["solve"],
-                           seconds_with_pose=med["bent"] + med["pose"],
-                           ratio_bent_over_undeformed=med["bent"] / med["plain"],
-                           ratio_with_pose=(med["bent"] + med["pose"]) / med["plain"],
-                           inverted_tets=int(out["inversion"].n_inverted) if out["inversion"] is not None else None,
-                           step_refine=float(getattr(posed.bend, "step_refine", 1.0)))
+                row.update(
+                    pose_seconds=med["pose"],
+                    arap_solve_seconds=med["solve"],
+                    seconds_with_pose=med["bent"] + med["pose"],
+                    ratio_bent_over_undeformed=med["bent"] / med["plain"],
+                    ratio_with_pose=(med["bent"] + med["pose"]) / med["plain"],
+                    inverted_tets=int(out["inversion"].n_inverted) if out["inversion"] is not None else None,
+                    step_refine=float(getattr(posed.bend, "step_refine", 1.0)),
+                )
             rows.append(row)
             if save is not None:
                 from blender_nerf_deform.engine.cli.render import write_png_rgba
@@ -245,13 +273,25 @@ def dataset_psnr(run: Path, data: str, views: int, paths) -> dict:
                 s = time.perf_counter() - t
                 gt = img[..., :3] * img[..., 3:] + (1 - img[..., 3:])
                 frames[(path, k)] = o["rgba"]
-                rows.append((psnr(o["rgb"], gt), s, o["density_samples_per_ray"], o["color_samples_per_ray"],
-                             psnr(o["rgba"], frames[("legacy", k)]) if ("legacy", k) in frames and path != "legacy" else None))
-        out[path] = {"views": len(rows), "size": f"{ds.width}x{ds.height}",
-                     "psnr_vs_dataset_white": float(np.mean([r[0] for r in rows])),
-                     "seconds_median": float(np.median([r[1] for r in rows])),
-                     "density_samples_per_ray": float(np.mean([r[2] for r in rows])),
-                     "color_samples_per_ray": float(np.mean([r[3] for r in rows]))}
+                rows.append(
+                    (
+                        psnr(o["rgb"], gt),
+                        s,
+                        o["density_samples_per_ray"],
+                        o["color_samples_per_ray"],
+                        psnr(o["rgba"], frames[("legacy", k)])
+                        if ("legacy", k) in frames and path != "legacy"
+                        else None,
+                    )
+                )
+        out[path] = {
+            "views": len(rows),
+            "size": f"{ds.width}x{ds.height}",
+            "psnr_vs_dataset_white": float(np.mean([r[0] for r in rows])),
+            "seconds_median": float(np.median([r[1] for r in rows])),
+            "density_samples_per_ray": float(np.mean([r[2] for r in rows])),
+            "color_samples_per_ray": float(np.mean([r[3] for r in rows])),
+        }
         if rows[0][4] is not None:
             out[path]["psnr_rgba_vs_legacy_min"] = float(np.min([r[4] for r in rows]))
     return out
@@ -270,11 +310,18 @@ def main(argv=None) -> int:
     ap.add_argument("--paths", nargs="+", default=["legacy", "fast"], help="render paths to compare (legacy, fast)")
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--save", type=Path, help="folder for the frames (PNG)")
-    ap.add_argument("--no-step-refine", action="store_true",
-                    help="bent frames march at the NeRF's step even where the pose compresses it (CageBend.step_refine = 1)")
-    ap.add_argument("--psnr-views", type=int, default=0,
-                    help="also render this many lego dataset views at the dataset's size on every path: PSNR vs the "
-                         "dataset (white) and vs the legacy path")
+    ap.add_argument(
+        "--no-step-refine",
+        action="store_true",
+        help="bent frames march at the NeRF's step even where the pose compresses it (CageBend.step_refine = 1)",
+    )
+    ap.add_argument(
+        "--psnr-views",
+        type=int,
+        default=0,
+        help="also render this many lego dataset views at the dataset's size on every path: PSNR vs the "
+        "dataset (white) and vs the legacy path",
+    )
     ap.add_argument("--json", type=Path)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
     args = ap.parse_args(argv)
@@ -286,13 +333,25 @@ def main(argv=None) -> int:
 
     results = {"threads": torch.get_num_threads(), "scenes": {}, "rows": []}
     if args.demo:
-        rows, info = bench_scene("demo", demo_scene(args.demo, args.width, args.height), args.paths, args.reps, args.save,
-                                 args.no_step_refine)
+        rows, info = bench_scene(
+            "demo",
+            demo_scene(args.demo, args.width, args.height),
+            args.paths,
+            args.reps,
+            args.save,
+            args.no_step_refine,
+        )
         results["rows"] += rows
         results["scenes"]["demo"] = info
     if args.lego_run:
-        rows, info = bench_scene("lego", lego_scene(args.lego_run, args.lego_data, args.lego_view, args.width, args.height),
-                                 args.paths, args.reps, args.save, args.no_step_refine)
+        rows, info = bench_scene(
+            "lego",
+            lego_scene(args.lego_run, args.lego_data, args.lego_view, args.width, args.height),
+            args.paths,
+            args.reps,
+            args.save,
+            args.no_step_refine,
+        )
         results["rows"] += rows
         results["scenes"]["lego"] = info
         if args.psnr_views:
@@ -302,12 +361,16 @@ def main(argv=None) -> int:
     for r in results["rows"]:
         extra = ""
         if r["frame"] == "bent":
-            extra = (f"  pose {r['pose_seconds']:.3f} s (ARAP {r['arap_solve_seconds']:.3f})  with pose {r['seconds_with_pose']:.2f} s"
-                     f"  ratio {r['ratio_bent_over_undeformed']:.3f} / with pose {r['ratio_with_pose']:.3f}")
+            extra = (
+                f"  pose {r['pose_seconds']:.3f} s (ARAP {r['arap_solve_seconds']:.3f})  with pose {r['seconds_with_pose']:.2f} s"
+                f"  ratio {r['ratio_bent_over_undeformed']:.3f} / with pose {r['ratio_with_pose']:.3f}"
+            )
         if "psnr_vs_legacy_rgba" in r:
             extra += f"  PSNR vs legacy {r['psnr_vs_legacy_rgba']:.1f} dB"
-        print(f"{r['scene']:5s} {r['path']:7s} {r['frame']:10s} {r['seconds']:7.2f} s  {r['ms_per_mp']:7.0f} ms/MP  "
-              f"{r['density_samples_per_ray']:6.2f} / {r['color_samples_per_ray']:5.2f} samples/ray{extra}")
+        print(
+            f"{r['scene']:5s} {r['path']:7s} {r['frame']:10s} {r['seconds']:7.2f} s  {r['ms_per_mp']:7.0f} ms/MP  "
+            f"{r['density_samples_per_ray']:6.2f} / {r['color_samples_per_ray']:5.2f} samples/ray{extra}"
+        )
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

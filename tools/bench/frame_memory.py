@@ -25,11 +25,33 @@ def peak_rss(nerf: str, size: int, folder: Path) -> int:
     """Peak RSS in bytes of `render` of one size x size frame looking at the origin from +Y."""
     cams = folder / f"cams_{size}.json"
     c2w = [[1, 0, 0, 0], [0, 0, 1, 4], [0, -1, 0, 0], [0, 0, 0, 1]]  # at (0, 4, 0), looking down -Y
-    cams.write_text(json.dumps({"camera_angle_x": 0.69, "w": size, "h": size,
-                                "frames": [{"file_path": "./frame", "transform_matrix": c2w}]}))
-    proc = subprocess.Popen([sys.executable, "-m", "blender_nerf_deform.engine", "render", "--nerf", nerf,
-                             "--cameras", str(cams), "--out", str(folder / f"out_{size}")], cwd=REPO,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cams.write_text(
+        json.dumps(
+            {
+                "camera_angle_x": 0.69,
+                "w": size,
+                "h": size,
+                "frames": [{"file_path": "./frame", "transform_matrix": c2w}],
+            }
+        )
+    )
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "blender_nerf_deform.engine",
+            "render",
+            "--nerf",
+            nerf,
+            "--cameras",
+            str(cams),
+            "--out",
+            str(folder / f"out_{size}"),
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     _, status, usage = os.wait4(proc.pid, 0)
     err = proc.stderr.read().decode(errors="replace")
     if status != 0:
@@ -46,8 +68,10 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         a, b = peak_rss(args.nerf, small, Path(tmp)), peak_rss(args.nerf, large, Path(tmp))
     per_pixel = (b - a) / (large**2 - small**2)
-    print(f"peak RSS {small}x{small}: {a / 2**20:.0f} MiB; {large}x{large}: {b / 2**20:.0f} MiB; "
-          f"{per_pixel:.0f} bytes per pixel")
+    print(
+        f"peak RSS {small}x{small}: {a / 2**20:.0f} MiB; {large}x{large}: {b / 2**20:.0f} MiB; "
+        f"{per_pixel:.0f} bytes per pixel"
+    )
     return 0
 
 

@@ -24,7 +24,6 @@ import argparse
 import time
 
 import numpy as np
-
 from geometry_common import machine
 
 
@@ -33,7 +32,11 @@ def main() -> int:
     ap.add_argument("--cage", help="cage .npz (default: 28^3 box cage)")
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--iters", type=int, default=1)
-    ap.add_argument("--runs", default="numba:elements,igl:elements", help="backend:energy pairs (igl also runs spokes, spokes_and_rims)")
+    ap.add_argument(
+        "--runs",
+        default="numba:elements,igl:elements",
+        help="backend:energy pairs (igl also runs spokes, spokes_and_rims)",
+    )
     args = ap.parse_args()
 
     from blender_nerf_deform.engine.geometry.barycentric import inversion_report
@@ -54,7 +57,9 @@ def main() -> int:
     pin = np.flatnonzero(V[:, axis] < lo[axis] + 0.1 * span)
     handle = np.flatnonzero(V[:, axis] > hi[axis] - 0.1 * span)
     centre = V[handle].mean(0)
-    print(f"machine: {machine()}; cage {name}: {len(V)} vertices, {len(T)} tets; handle {len(handle)}, pinned {len(pin)} vertices")
+    print(
+        f"machine: {machine()}; cage {name}: {len(V)} vertices, {len(T)} tets; handle {len(handle)}, pinned {len(pin)} vertices"
+    )
 
     def transform(f):
         a = 0.6 * f / args.frames

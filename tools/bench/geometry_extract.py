@@ -14,8 +14,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
-
 from geometry_common import BOUNDS, analytic_density, machine
 
 
@@ -44,7 +42,9 @@ def main() -> int:
     else:
         density, bounds, source = analytic_density, BOUNDS, "analytic object"
     t0 = time.perf_counter()
-    res = extract_mesh(density, bounds, resolution=args.resolution, threshold=args.threshold or DEFAULT_THRESHOLD, colour_fn=colour)
+    res = extract_mesh(
+        density, bounds, resolution=args.resolution, threshold=args.threshold or DEFAULT_THRESHOLD, colour_fn=colour
+    )
     total = time.perf_counter() - t0
     t = res.timings
     print(f"machine: {machine()}; source: {source}")

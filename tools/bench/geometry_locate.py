@@ -19,7 +19,6 @@ import argparse
 import time
 
 import numpy as np
-
 from geometry_common import extracted_mesh, machine, timed
 
 
@@ -38,8 +37,8 @@ def main() -> int:
 
     from blender_nerf_deform.engine.geometry.barycentric import inversion_report, tet_inverses
     from blender_nerf_deform.engine.geometry.cage import build_cage
-    from blender_nerf_deform.engine.geometry.mesh_io import load_cage, save_cage
     from blender_nerf_deform.engine.geometry.locate import TetLocator
+    from blender_nerf_deform.engine.geometry.mesh_io import load_cage, save_cage
 
     if args.cage:
         c = load_cage(args.cage)
@@ -48,7 +47,9 @@ def main() -> int:
         mesh = extracted_mesh(128)
         t0 = time.perf_counter()
         cage = build_cage(mesh.vertices, mesh.faces, margin=0.05, target_tets=args.tets)
-        print(f"cage: {len(cage.tets)} tets, {len(cage.vertices)} vertices, built in {time.perf_counter() - t0:.1f}s {cage.timings}")
+        print(
+            f"cage: {len(cage.tets)} tets, {len(cage.vertices)} vertices, built in {time.perf_counter() - t0:.1f}s {cage.timings}"
+        )
         V, T = cage.vertices, cage.tets
         if args.save_cage:
             save_cage(args.save_cage, V, T)
@@ -86,12 +87,17 @@ def main() -> int:
     t_igl, ref = timed(run_igl, args.repeat)
     results["igl"] = t_igl
     rows = []
-    variants = [("numba (CPU kernels)", run_ours("numba")), ("torch float32", run_ours("torch", torch.float32)),
-                ("torch float64", run_ours("torch"))]
+    variants = [
+        ("numba (CPU kernels)", run_ours("numba")),
+        ("torch float32", run_ours("torch", torch.float32)),
+        ("torch float64", run_ours("torch")),
+    ]
     if args.cuda:
         run_ours("torch", torch.float32, "cuda")()  # CUDA context and kernels warmed up outside the timing
-        variants += [("torch float32 on CUDA", run_ours("torch", torch.float32, "cuda")),
-                     ("torch float64 on CUDA", run_ours("torch", torch.float64, "cuda"))]
+        variants += [
+            ("torch float32 on CUDA", run_ours("torch", torch.float32, "cuda")),
+            ("torch float64 on CUDA", run_ours("torch", torch.float64, "cuda")),
+        ]
     for name, fn in variants:
         t, got = timed(fn, args.repeat if ("numba" in name or "CUDA" in name) else max(1, args.repeat // 2))
         differ = np.flatnonzero(got != ref)
@@ -102,10 +108,14 @@ def main() -> int:
             m = []
             for t_ in (got[i], ref[i]):
                 if t_ >= 0:
-                    m.append((Minv[t_] @ np.append(Q[i], 1.0)).min())  # the point's smallest barycentric coordinate in tet t_
+                    m.append(
+                        (Minv[t_] @ np.append(Q[i], 1.0)).min()
+                    )  # the point's smallest barycentric coordinate in tet t_
             boundary += all(abs(x) < tol for x in m)
         rows.append((name, t, len(differ), boundary))
-    print(f"machine: {machine()}; torch threads {torch.get_num_threads()}; {len(T)} tets; {args.points} points; inside {np.mean(ref >= 0):.1%}")
+    print(
+        f"machine: {machine()}; torch threads {torch.get_num_threads()}; {len(T)} tets; {args.points} points; inside {np.mean(ref >= 0):.1%}"
+    )
     print(f"igl AABB+in_element: {t_igl * 1e3:.0f} ms  ({args.points / t_igl / 1e6:.2f} M points/s)")
     for name, t, nd, nb in rows:
         print(

@@ -110,7 +110,10 @@ def main() -> int:
     ap.add_argument("--frame", action="store_true", help="also time a held-out frame (2 substeps) with each set")
     args = ap.parse_args()
 
-    kernels = {"old": other_kernels(args.old_tree), "new": (encoding_kernels._hash_forward, encoding_kernels._hash_backward)}
+    kernels = {
+        "old": other_kernels(args.old_tree),
+        "new": (encoding_kernels._hash_forward, encoding_kernels._hash_backward),
+    }
     ds = load_dataset(args.data, downscale=args.downscale)
     held_out = list(range(5, len(ds), 10))
     torch.manual_seed(0)
@@ -125,28 +128,36 @@ def main() -> int:
     arrs = enc._kernel_arrays
     table = enc.table.detach().numpy()
     density, x, g = one_step_samples(trainer)
-    print(f"after {trainer.step_count} steps: {len(density)} density samples, {len(x)} gradient samples in a step; "
-          f"{trainer.last['rays']} rays", flush=True)
+    print(
+        f"after {trainer.step_count} steps: {len(density)} density samples, {len(x)} gradient samples in a step; "
+        f"{trainer.last['rays']} rays",
+        flush=True,
+    )
     outs, grads = {}, {}
     for name, (fwd, bwd) in kernels.items():
         outs[name] = np.empty((len(density), enc.out_dim), np.float32)
         grads[name] = (np.zeros_like(table), np.zeros(table.shape[0], np.uint8))
         fwd(density, table, arrs.res, arrs.dense, arrs.size, arrs.off, outs[name])
         bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off, *grads[name])
-    same = (np.array_equal(outs["old"], outs["new"]) and np.array_equal(grads["old"][0], grads["new"][0])
-            and np.array_equal(grads["old"][1], grads["new"][1]))
+    same = (
+        np.array_equal(outs["old"], outs["new"])
+        and np.array_equal(grads["old"][0], grads["new"][0])
+        and np.array_equal(grads["old"][1], grads["new"][1])
+    )
     print("same values:", same, flush=True)
 
     times = {f"{name} {part}": [] for name in kernels for part in ("forward", "backward", "step")}
     for r in range(args.repeats):
-        for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
+        for name in ("old", "new") if r % 2 == 0 else ("new", "old"):
             fwd, bwd = kernels[name]
-            times[f"{name} forward"].append(seconds(lambda: fwd(density, table, arrs.res, arrs.dense, arrs.size,
-                                                                arrs.off, outs[name])))
-            times[f"{name} backward"].append(seconds(lambda: bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off,
-                                                                 *grads[name])))
+            times[f"{name} forward"].append(
+                seconds(lambda: fwd(density, table, arrs.res, arrs.dense, arrs.size, arrs.off, outs[name]))
+            )
+            times[f"{name} backward"].append(
+                seconds(lambda: bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off, *grads[name]))
+            )
     for r in range(args.repeats):
-        for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
+        for name in ("old", "new") if r % 2 == 0 else ("new", "old"):
             use(kernels[name])
             t = time.perf_counter()
             for _ in range(args.steps):
@@ -156,14 +167,17 @@ def main() -> int:
     for key, values in times.items():
         print(summary(key + " ms", values), flush=True)
     pairs = [n / o for o, n in zip(times["old step"], times["new step"])]
-    print(f"step new/old, pairwise: median {statistics.median(pairs):.3f} "
-          f"(range {min(pairs):.3f}-{max(pairs):.3f}); now {trainer.last['rays']} rays a step", flush=True)
+    print(
+        f"step new/old, pairwise: median {statistics.median(pairs):.3f} "
+        f"(range {min(pairs):.3f}-{max(pairs):.3f}); now {trainer.last['rays']} rays a step",
+        flush=True,
+    )
     if args.frame and held_out:
         camera = ds.cameras[held_out[0]]
         trainer.model.eval()
         frame = {"old": [], "new": []}
         for r in range(6):
-            for name in (("old", "new") if r % 2 == 0 else ("new", "old")):
+            for name in ("old", "new") if r % 2 == 0 else ("new", "old"):
                 use(kernels[name])
                 frame[name].append(seconds(lambda: render_image(trainer.model, camera, substeps=2)))
         use(kernels["new"])

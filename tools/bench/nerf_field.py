@@ -55,8 +55,14 @@ class Variant:
     def __init__(self, name, levels, feats, log2t, mode):
         self.name, self.mode = name, mode
         torch.manual_seed(0)
-        self.model = NerfModel(NerfConfig(n_levels=levels, n_features=feats, log2_table_size=log2t,
-                                          finest_resolution=2048 if levels == 16 else 512))
+        self.model = NerfModel(
+            NerfConfig(
+                n_levels=levels,
+                n_features=feats,
+                log2_table_size=log2t,
+                finest_resolution=2048 if levels == 16 else 512,
+            )
+        )
         enc = self.model.encoding
         self.path = "auto" if mode in ("kernels", "lazyadam", "ours") else "torch"  # backend.forced per call
         enc.fused_grad = mode in ("lazyadam", "ours")
@@ -64,7 +70,11 @@ class Variant:
         if mode == "naive":
             # Separate per-level tables, as the obvious implementation keeps them.
             self.tables = torch.nn.ParameterList(
-                [torch.nn.Parameter(enc.table.detach()[int(o): int(o) + s].clone()) for o, s in zip(enc.offsets, enc.level_sizes)])
+                [
+                    torch.nn.Parameter(enc.table.detach()[int(o) : int(o) + s].clone())
+                    for o, s in zip(enc.offsets, enc.level_sizes)
+                ]
+            )
             params = list(self.tables) + mlp
         elif enc.fused_grad:
             params = mlp
@@ -101,8 +111,19 @@ class Variant:
         self.t += 1
         enc = self.model.encoding
         if enc.fused_grad:
-            sparse_adam(enc.table.detach().numpy(), enc.grad_buffer().numpy(), self.m.numpy(), self.v.numpy(),
-                         enc.touched_rows(), 1e-2, 0.9, 0.99, 1e-15, 1 - 0.9**self.t, 1 - 0.99**self.t)
+            sparse_adam(
+                enc.table.detach().numpy(),
+                enc.grad_buffer().numpy(),
+                self.m.numpy(),
+                self.v.numpy(),
+                enc.touched_rows(),
+                1e-2,
+                0.9,
+                0.99,
+                1e-15,
+                1 - 0.9**self.t,
+                1 - 0.99**self.t,
+            )
 
 
 def timed(fn, repeat):
@@ -131,19 +152,33 @@ def main() -> int:
     for name, levels, feats, log2t, mode in ladder:
         v = Variant(name, levels, feats, log2t, mode)
         fwd = timed(lambda: v.forward(pts, dirs), args.repeat)
-        stp = timed(lambda: v.train_step(pts, dirs, target), max(2, args.repeat // 2) if mode == "naive" else args.repeat)
-        rows.append({"variant": name, "levels": levels, "features": feats, "log2_table": log2t,
-                     "forward_Msamples_s": args.n / fwd / 1e6, "train_step_Msamples_s": args.n / stp / 1e6})
+        stp = timed(
+            lambda: v.train_step(pts, dirs, target), max(2, args.repeat // 2) if mode == "naive" else args.repeat
+        )
+        rows.append(
+            {
+                "variant": name,
+                "levels": levels,
+                "features": feats,
+                "log2_table": log2t,
+                "forward_Msamples_s": args.n / fwd / 1e6,
+                "train_step_Msamples_s": args.n / stp / 1e6,
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
     base = rows[0]
     print(f"\n{'variant':<12} {'config':<14} {'forward M/s':>12} {'x naive':>8} {'train M/s':>10} {'x naive':>8}")
     for r in rows:
         cfg = f"{r['levels']}x{r['features']} 2^{r['log2_table']}"
-        print(f"{r['variant']:<12} {cfg:<14} {r['forward_Msamples_s']:>12.3f} "
-              f"{r['forward_Msamples_s'] / base['forward_Msamples_s']:>8.1f} {r['train_step_Msamples_s']:>10.3f} "
-              f"{r['train_step_Msamples_s'] / base['train_step_Msamples_s']:>8.1f}")
+        print(
+            f"{r['variant']:<12} {cfg:<14} {r['forward_Msamples_s']:>12.3f} "
+            f"{r['forward_Msamples_s'] / base['forward_Msamples_s']:>8.1f} {r['train_step_Msamples_s']:>10.3f} "
+            f"{r['train_step_Msamples_s'] / base['train_step_Msamples_s']:>8.1f}"
+        )
     if args.json:
-        Path(args.json).write_text(json.dumps({"n": args.n, "threads": torch.get_num_threads(), "rows": rows}, indent=1))
+        Path(args.json).write_text(
+            json.dumps({"n": args.n, "threads": torch.get_num_threads(), "rows": rows}, indent=1)
+        )
     return 0
 
 

@@ -35,9 +35,14 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=10, help="render frames 0, every, 2*every, ...")
     ap.add_argument("--chunk", type=int, default=4096)
     ap.add_argument("--downscale", type=int, default=1)
-    ap.add_argument("--early-stop", type=float, nargs="*", default=[1e-4],
-                    help="transmittance thresholds to compare (each also the colour weight threshold; "
-                         "default the renderer's, 1e-4)")
+    ap.add_argument(
+        "--early-stop",
+        type=float,
+        nargs="*",
+        default=[1e-4],
+        help="transmittance thresholds to compare (each also the colour weight threshold; "
+        "default the renderer's, 1e-4)",
+    )
     ap.add_argument("--json")
     args = ap.parse_args()
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -51,19 +56,34 @@ def main() -> int:
         times, psnrs, dspr, cspr = [], [], [], []
         for cam, img in zip(ds.cameras, ds.images):
             t = time.perf_counter()
-            out = render_image(model, cam, background=(1.0, 1.0, 1.0), chunk=args.chunk, early_stop_eps=eps,
-                               weight_threshold=eps)
+            out = render_image(
+                model, cam, background=(1.0, 1.0, 1.0), chunk=args.chunk, early_stop_eps=eps, weight_threshold=eps
+            )
             times.append(time.perf_counter() - t)
             gt = img[..., :3] * img[..., 3:] + (1 - img[..., 3:])
             psnrs.append(-10 * np.log10(np.mean((out["rgb"] - gt) ** 2)))
             dspr.append(out["density_samples_per_ray"])
             cspr.append(out["color_samples_per_ray"])
-        results.append({"early_stop": eps, "frames": len(times), "size": f"{ds.width}x{ds.height}", "chunk": args.chunk,
-                        "seconds_median": float(np.median(times)), "seconds_max": float(np.max(times)),
-                        "density_samples_per_ray": float(np.mean(dspr)), "color_samples_per_ray": float(np.mean(cspr)),
-                        "psnr_white": float(np.mean(psnrs))})
-    res = {"results": results, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-           "rss_mb_before_load": rss0, "rss_mb_after_first_frame": rss_loaded, "threads": torch.get_num_threads()}
+        results.append(
+            {
+                "early_stop": eps,
+                "frames": len(times),
+                "size": f"{ds.width}x{ds.height}",
+                "chunk": args.chunk,
+                "seconds_median": float(np.median(times)),
+                "seconds_max": float(np.max(times)),
+                "density_samples_per_ray": float(np.mean(dspr)),
+                "color_samples_per_ray": float(np.mean(cspr)),
+                "psnr_white": float(np.mean(psnrs)),
+            }
+        )
+    res = {
+        "results": results,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "rss_mb_before_load": rss0,
+        "rss_mb_after_first_frame": rss_loaded,
+        "threads": torch.get_num_threads(),
+    }
     print(json.dumps(res, indent=1))
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))

@@ -68,10 +68,15 @@ def evaluate(model, ds, substeps: int = 1, pictures: str | None = None) -> dict:
             Path(pictures).mkdir(parents=True, exist_ok=True)
             pair = np.concatenate([gt, out["rgb"]], axis=1)
             Image.fromarray((np.clip(pair, 0, 1) * 255 + 0.5).astype(np.uint8)).save(
-                Path(pictures) / f"{cam.name}_{psnrs[-1]:.1f}dB.png")
-    return {"psnr": float(np.mean(psnrs)), "render_s_median": float(np.median(times)),
-            "density_samples_per_ray": float(np.mean(spr)), "color_samples_per_ray": float(np.mean(cspr)),
-            "psnr_per_view": [round(float(p), 2) for p in psnrs]}
+                Path(pictures) / f"{cam.name}_{psnrs[-1]:.1f}dB.png"
+            )
+    return {
+        "psnr": float(np.mean(psnrs)),
+        "render_s_median": float(np.median(times)),
+        "density_samples_per_ray": float(np.mean(spr)),
+        "color_samples_per_ray": float(np.mean(cspr)),
+        "psnr_per_view": [round(float(p), 2) for p in psnrs],
+    }
 
 
 def pose_summary(trainer: Trainer) -> dict | None:
@@ -81,8 +86,13 @@ def pose_summary(trainer: Trainer) -> dict | None:
     with torch.no_grad():
         angle = torch.rad2deg(trainer.pose_delta[:, :3].norm(dim=-1))
         shift = trainer.pose_corrections()[1].norm(dim=-1)
-    return {"rotation_deg_mean": float(angle.mean()), "rotation_deg_max": float(angle.max()),
-            "shift_mean": float(shift.mean()), "shift_max": float(shift.max()), "scene_half_width": trainer.pose_scale}
+    return {
+        "rotation_deg_mean": float(angle.mean()),
+        "rotation_deg_max": float(angle.max()),
+        "shift_mean": float(shift.mean()),
+        "shift_max": float(shift.max()),
+        "scene_half_width": trainer.pose_scale,
+    }
 
 
 def main() -> int:
@@ -96,7 +106,9 @@ def main() -> int:
     ap.add_argument("--finest", type=int, default=None)
     ap.add_argument("--levels", type=int, default=None, help="hash grid levels (default: NerfConfig's)")
     ap.add_argument("--features", type=int, default=None, help="features per level (default: NerfConfig's)")
-    ap.add_argument("--color-layers", type=int, default=None, help="hidden layers of the colour MLP (default: NerfConfig's)")
+    ap.add_argument(
+        "--color-layers", type=int, default=None, help="hidden layers of the colour MLP (default: NerfConfig's)"
+    )
     ap.add_argument("--occ-res", type=int, default=None)
     ap.add_argument("--target-samples", type=int, default=None)
     ap.add_argument("--lr", type=float, default=None, help="peak learning rate (default: TrainOptions.lr)")
@@ -104,36 +116,79 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the torch path)")
     ap.add_argument("--downscale", type=int, default=1, help="box-filter the images by this factor (fox: 4 → 270x480)")
-    ap.add_argument("--scene", default="auto", choices=("auto", "bounded", "unbounded"),
-                    help="the trainer's scene model (auto: unbounded for photos without alpha)")
+    ap.add_argument(
+        "--scene",
+        default="auto",
+        choices=("auto", "bounded", "unbounded"),
+        help="the trainer's scene model (auto: unbounded for photos without alpha)",
+    )
     ap.add_argument("--steps-per-diagonal", type=int, default=None)
-    ap.add_argument("--occ-threshold", type=float, default=None, help="occupancy threshold (opacity over one render step)")
-    ap.add_argument("--final", action="store_true",
-                    help="also keep views 5, 15, 25, ... out, evaluated only once at the end (never tune on them)")
-    ap.add_argument("--train-val", action="store_true",
-                    help="with --final, the validation views train too: a user's training set, every photo but the "
-                         "held-out ones (the marks' val PSNR is then on views it trained on)")
+    ap.add_argument(
+        "--occ-threshold", type=float, default=None, help="occupancy threshold (opacity over one render step)"
+    )
+    ap.add_argument(
+        "--final",
+        action="store_true",
+        help="also keep views 5, 15, 25, ... out, evaluated only once at the end (never tune on them)",
+    )
+    ap.add_argument(
+        "--train-val",
+        action="store_true",
+        help="with --final, the validation views train too: a user's training set, every photo but the "
+        "held-out ones (the marks' val PSNR is then on views it trained on)",
+    )
     ap.add_argument("--appearance-dim", type=int, default=0, help="per-image appearance code size (0: none)")
     ap.add_argument("--distortion", type=float, default=None, help="distortion loss weight (default: the trainer's)")
-    ap.add_argument("--occ-every", type=int, default=None, help="update the occupancy grids every this many steps (default: 16 per grid)")
-    ap.add_argument("--train-round", type=int, default=None,
-                    help="samples marched per training round (default: renderer.TRAIN_SAMPLES_PER_ROUND)")
-    ap.add_argument("--error-rays", type=float, default=None,
-                    help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)")
+    ap.add_argument(
+        "--occ-every",
+        type=int,
+        default=None,
+        help="update the occupancy grids every this many steps (default: 16 per grid)",
+    )
+    ap.add_argument(
+        "--train-round",
+        type=int,
+        default=None,
+        help="samples marched per training round (default: renderer.TRAIN_SAMPLES_PER_ROUND)",
+    )
+    ap.add_argument(
+        "--error-rays",
+        type=float,
+        default=None,
+        help="fraction of each step's rays drawn from the error map (default: TrainOptions.error_rays)",
+    )
     ap.add_argument("--near-plane", type=float, default=None, help="rays start this far from the camera (scene units)")
-    ap.add_argument("--train-every", type=int, default=1,
-                    help="train on every K-th of the training views only: a sparser capture of the same scene, "
-                         "validated and held out on the same views")
+    ap.add_argument(
+        "--train-every",
+        type=int,
+        default=1,
+        help="train on every K-th of the training views only: a sparser capture of the same scene, "
+        "validated and held out on the same views",
+    )
     ap.add_argument("--pictures", help="with --final: write each held-out photo beside its final render here (PNG)")
-    ap.add_argument("--masks", default="auto", choices=("auto", "object", "ignore"),
-                    help="what the dataset's masks mean (default auto: decided by their shape)")
-    ap.add_argument("--min-views", type=int, default=None,
-                    help="inner cells that some but fewer than this many training photos see (their rendered depth "
-                         "reaches the cell) hold no density (default: TrainOptions.min_views, off)")
+    ap.add_argument(
+        "--masks",
+        default="auto",
+        choices=("auto", "object", "ignore"),
+        help="what the dataset's masks mean (default auto: decided by their shape)",
+    )
+    ap.add_argument(
+        "--min-views",
+        type=int,
+        default=None,
+        help="inner cells that some but fewer than this many training photos see (their rendered depth "
+        "reaches the cell) hold no density (default: TrainOptions.min_views, off)",
+    )
     ap.add_argument("--refine-poses", action="store_true", help="learn a correction of each training photo's pose")
-    ap.add_argument("--pose-lr", type=float, default=None, help="its peak learning rate (default: TrainOptions.pose_lr)")
-    ap.add_argument("--pose-start", type=float, default=None,
-                    help="fraction of the budget before the poses move (default: TrainOptions.pose_start)")
+    ap.add_argument(
+        "--pose-lr", type=float, default=None, help="its peak learning rate (default: TrainOptions.pose_lr)"
+    )
+    ap.add_argument(
+        "--pose-start",
+        type=float,
+        default=None,
+        help="fraction of the budget before the poses move (default: TrainOptions.pose_start)",
+    )
     args = ap.parse_args()
     if args.train_val and not args.final:
         ap.error("--train-val needs --final: without held-out views nothing would be left unseen")
@@ -148,7 +203,7 @@ def main() -> int:
     val_idx, held_out = split_views(len(ds))
     final_idx = held_out if args.final else []
     train_idx = [i for i in range(len(ds)) if i not in final_idx and (args.train_val or i not in val_idx)]
-    train = ds.subset(train_idx[::args.train_every])
+    train = ds.subset(train_idx[:: args.train_every])
     val = ds.subset(val_idx)
     cfg = config_for(ds, args.scene)
     if args.steps_per_diagonal:
@@ -203,10 +258,17 @@ def main() -> int:
             mark = marks.pop(0)
             rss_before_eval[0] = peak_rss_mb()
             r = evaluate(tr.model, val)
-            r.update({"at_s": mark, "train_s": round(tr.elapsed, 1), "step": tr.step_count,
-                      "rays_per_step": tr.last.get("rays"), "train_samples_per_ray": tr.last.get("samples_per_ray"),
-                      "train_density_samples_per_ray": tr.last.get("density_samples_per_ray"),
-                      "occupied_cells": int(tr.model.occupancy.mask.sum())})
+            r.update(
+                {
+                    "at_s": mark,
+                    "train_s": round(tr.elapsed, 1),
+                    "step": tr.step_count,
+                    "rays_per_step": tr.last.get("rays"),
+                    "train_samples_per_ray": tr.last.get("samples_per_ray"),
+                    "train_density_samples_per_ray": tr.last.get("density_samples_per_ray"),
+                    "occupied_cells": int(tr.model.occupancy.mask.sum()),
+                }
+            )
             results.append(r)
             print(json.dumps(r), flush=True)
 
@@ -223,14 +285,29 @@ def main() -> int:
         final_substeps = evaluate(trainer.model, ds.subset(final_idx), substeps=FINAL_SUBSTEPS, pictures=args.pictures)
         final_substeps.update({"views": final_idx, "substeps": FINAL_SUBSTEPS})
         print(json.dumps({"final_substeps": final_substeps}), flush=True)
-    summary = {"data": args.data, "downscale": args.downscale, "images": [train.width, train.height, len(train), len(val)],
-               "val_trained": args.train_val,
-               "config": cfg.to_dict(), "options": {k: getattr(opts, k) for k in ("target_samples", "lr", "lr_final_factor", "refine_poses", "pose_lr", "pose_start")},
-               "results": results, "final": final,
-               "final_substeps": final_substeps, "pose_corrections": pose_summary(trainer), "steps": trainer.step_count, "train_seconds": trainer.elapsed, "wall_seconds": wall,
-               "peak_rss_mb_training": rss_before_eval[0], "peak_rss_mb_total": peak_rss_mb(),
-               "threads": torch.get_num_threads(), "torch": torch.__version__,
-               "device": str(model.device) + (f" ({torch.cuda.get_device_name()})" if model.device.type == "cuda" else "")}
+    summary = {
+        "data": args.data,
+        "downscale": args.downscale,
+        "images": [train.width, train.height, len(train), len(val)],
+        "val_trained": args.train_val,
+        "config": cfg.to_dict(),
+        "options": {
+            k: getattr(opts, k)
+            for k in ("target_samples", "lr", "lr_final_factor", "refine_poses", "pose_lr", "pose_start")
+        },
+        "results": results,
+        "final": final,
+        "final_substeps": final_substeps,
+        "pose_corrections": pose_summary(trainer),
+        "steps": trainer.step_count,
+        "train_seconds": trainer.elapsed,
+        "wall_seconds": wall,
+        "peak_rss_mb_training": rss_before_eval[0],
+        "peak_rss_mb_total": peak_rss_mb(),
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "device": str(model.device) + (f" ({torch.cuda.get_device_name()})" if model.device.type == "cuda" else ""),
+    }
     print(json.dumps({k: v for k, v in summary.items() if k != "results"}), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))

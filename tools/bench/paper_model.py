@@ -46,13 +46,22 @@ def kernels(rays: float, samples: float, k_slots: float, train: bool) -> list[tu
     ]
     if train:
         rows += [
-            ("second pass: density + colour MLP forward again", s * 4 * (ENC + 2 * 64 + 16 + 32 + 4 * 64 + 3),
-             s * 2 * (DENSITY_MACS + COLOR_MACS)),
-            ("MLP backward (both, activations and weight gradients)", 2 * s * 4 * (ENC + 2 * 64 + 16 + 32 + 4 * 64 + 3),
-             s * 4 * (DENSITY_MACS + COLOR_MACS)),
+            (
+                "second pass: density + colour MLP forward again",
+                s * 4 * (ENC + 2 * 64 + 16 + 32 + 4 * 64 + 3),
+                s * 2 * (DENSITY_MACS + COLOR_MACS),
+            ),
+            (
+                "MLP backward (both, activations and weight gradients)",
+                2 * s * 4 * (ENC + 2 * 64 + 16 + 32 + 4 * 64 + 3),
+                s * 4 * (DENSITY_MACS + COLOR_MACS),
+            ),
             ("composite backward", s * 4 * 8, s * 30),
-            ("hash backward (gradient in; atomics into the L2-resident table gradient)", s * (12 + ENC * 4),
-             s * LEVELS * 8 * FEATURES * 2),
+            (
+                "hash backward (gradient in; atomics into the L2-resident table gradient)",
+                s * (12 + ENC * 4),
+                s * LEVELS * 8 * FEATURES * 2,
+            ),
             ("table gradient zeroed", TABLE_PARAMS * 4, 0),
             ("fused Adam (param, grad, m, v read; param, m, v written)", TABLE_PARAMS * 4 * 7, TABLE_PARAMS * 12),
         ]
@@ -63,19 +72,31 @@ def report(name: str, rows, launches_before: float, launches_after: float) -> di
     total_b = sum(r[1] for r in rows)
     total_f = sum(r[2] for r in rows)
     print(f"\n{name}")
-    print(f"| kernel | DRAM bytes | FLOPs | time at 3.35 TB/s | time at 990 TFLOP/s |")
+    print("| kernel | DRAM bytes | FLOPs | time at 3.35 TB/s | time at 990 TFLOP/s |")
     print("| --- | --- | --- | --- | --- |")
     for kernel, b, f in rows:
-        print(f"| {kernel} | {b / 1e6:.1f} MB | {f / 1e9:.2f} GFLOP | {b / BANDWIDTH * 1e6:.1f} us | "
-              f"{f / FLOPS_FP16 * 1e6:.2f} us |")
+        print(
+            f"| {kernel} | {b / 1e6:.1f} MB | {f / 1e9:.2f} GFLOP | {b / BANDWIDTH * 1e6:.1f} us | "
+            f"{f / FLOPS_FP16 * 1e6:.2f} us |"
+        )
     mem_s, fp16_s, fp32_s = total_b / BANDWIDTH, total_f / FLOPS_FP16, total_f / FLOPS_FP32
-    print(f"| **all** | {total_b / 1e6:.0f} MB | {total_f / 1e9:.1f} GFLOP | **{mem_s * 1e3:.3f} ms** | "
-          f"{fp16_s * 1e3:.3f} ms (fp32 cores: {fp32_s * 1e3:.3f} ms) |")
-    print(f"launch overhead: before {launches_before:.0f} x 5 us = {launches_before * LAUNCH_S * 1e3:.2f} ms, "
-          f"after {launches_after:.0f} x 5 us = {launches_after * LAUNCH_S * 1e3:.2f} ms")
-    return {"bytes": total_b, "flops": total_f, "memory_ms": mem_s * 1e3, "fp16_ms": fp16_s * 1e3,
-            "fp32_ms": fp32_s * 1e3, "launch_ms_before": launches_before * LAUNCH_S * 1e3,
-            "launch_ms_after": launches_after * LAUNCH_S * 1e3}
+    print(
+        f"| **all** | {total_b / 1e6:.0f} MB | {total_f / 1e9:.1f} GFLOP | **{mem_s * 1e3:.3f} ms** | "
+        f"{fp16_s * 1e3:.3f} ms (fp32 cores: {fp32_s * 1e3:.3f} ms) |"
+    )
+    print(
+        f"launch overhead: before {launches_before:.0f} x 5 us = {launches_before * LAUNCH_S * 1e3:.2f} ms, "
+        f"after {launches_after:.0f} x 5 us = {launches_after * LAUNCH_S * 1e3:.2f} ms"
+    )
+    return {
+        "bytes": total_b,
+        "flops": total_f,
+        "memory_ms": mem_s * 1e3,
+        "fp16_ms": fp16_s * 1e3,
+        "fp32_ms": fp32_s * 1e3,
+        "launch_ms_before": launches_before * LAUNCH_S * 1e3,
+        "launch_ms_after": launches_after * LAUNCH_S * 1e3,
+    }
 
 
 def main() -> int:
@@ -90,9 +111,14 @@ def main() -> int:
     step = after["train"]["a_step"]
     rays = after["train"]["rays_mean"]
     samples = rays * (step.get("density_samples_per_ray") or step["samples_per_ray"])
-    out = {"step": report(f"Training step ({rays:.0f} rays, {samples:.0f} density samples, all with gradients)",
-                          kernels(rays, samples, args.box_steps, True), before["train"]["launches_mean"],
-                          after["train"]["launches_mean"])}
+    out = {
+        "step": report(
+            f"Training step ({rays:.0f} rays, {samples:.0f} density samples, all with gradients)",
+            kernels(rays, samples, args.box_steps, True),
+            before["train"]["launches_mean"],
+            after["train"]["launches_mean"],
+        )
+    }
     pixels = 1920 * 1080
     chunks = -(-pixels // args.frame_chunk)
     frame = []
@@ -104,10 +130,13 @@ def main() -> int:
     name, per_round_b, per_round_a, rounds_per_chunk = frame[0]
     # Before: 64K-ray chunks on every device; after: FRAME_CHUNK_CUDA.
     chunks_before = -(-pixels // (1 << 16))
-    out["frame"] = report(f"1920x1080 frame, rest ({pixels * args.frame_samples_per_ray / 1e6:.1f} M density "
-                          f"samples; {chunks} chunks x ~{rounds_per_chunk} rounds after, {chunks_before} before)",
-                          kernels(pixels, pixels * args.frame_samples_per_ray, 2 * args.frame_samples_per_ray, False),
-                          chunks_before * rounds_per_chunk * per_round_b, chunks * rounds_per_chunk * per_round_a)
+    out["frame"] = report(
+        f"1920x1080 frame, rest ({pixels * args.frame_samples_per_ray / 1e6:.1f} M density "
+        f"samples; {chunks} chunks x ~{rounds_per_chunk} rounds after, {chunks_before} before)",
+        kernels(pixels, pixels * args.frame_samples_per_ray, 2 * args.frame_samples_per_ray, False),
+        chunks_before * rounds_per_chunk * per_round_b,
+        chunks * rounds_per_chunk * per_round_a,
+    )
     print(json.dumps(out, indent=1))
     return 0
 

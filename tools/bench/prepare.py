@@ -52,8 +52,13 @@ def compare(got: dict, true: dict) -> dict:
     for gi, ti in zip(g, t):
         r = ti[:3, :3].T @ rot @ gi[:3, :3]
         angles.append(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
-    return {"compared": len(names), "rotation_deg_mean": float(np.mean(angles)), "rotation_deg_max": float(np.max(angles)),
-            "position_rel_mean": float(rel.mean()), "position_rel_max": float(rel.max())}
+    return {
+        "compared": len(names),
+        "rotation_deg_mean": float(np.mean(angles)),
+        "rotation_deg_max": float(np.max(angles)),
+        "position_rel_mean": float(rel.mean()),
+        "position_rel_max": float(rel.max()),
+    }
 
 
 def main() -> int:
@@ -83,9 +88,16 @@ def main() -> int:
         got = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in out["frames"]}
         if args.keep:
             shutil.copytree(Path(tmp) / "out", args.keep)
-    result = {"photos": len(files), "registered": summary["registered"], "wall_s": wall, "timings": summary["timings"],
-              "camera_model": summary["camera_model"], "max_size": args.max_size, "matcher": args.matcher,
-              **compare(got, true)}
+    result = {
+        "photos": len(files),
+        "registered": summary["registered"],
+        "wall_s": wall,
+        "timings": summary["timings"],
+        "camera_model": summary["camera_model"],
+        "max_size": args.max_size,
+        "matcher": args.matcher,
+        **compare(got, true),
+    }
     print(json.dumps(result, indent=1))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))

@@ -55,7 +55,9 @@ if str(REPO) not in sys.path:
 def _run(*cmd) -> None:
     proc = subprocess.run([str(c) for c in cmd], cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(map(str, cmd))} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+        raise SystemExit(
+            f"{' '.join(map(str, cmd))} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
+        )
 
 
 def _select_vertices(bpy, surface, indices) -> None:
@@ -97,13 +99,37 @@ def build_default_scene(bpy, work: Path, steps: int, resolution: int) -> Path:
         _run(python, REPO / "tools" / "default_scene.py", "--out", work / "scene.blend")
     if not (work / "data" / "transforms.json").is_file():
         print("rendering its dataset (40 views, 64 px) ...", flush=True)
-        _run(python, REPO / "tools" / "make_dataset.py", "--blend", work / "scene.blend", "--out", work / "data",
-             "--count", 40, "--resolution", 64, "--radius", 4.0, "--threads", 2)
+        _run(
+            python,
+            REPO / "tools" / "make_dataset.py",
+            "--blend",
+            work / "scene.blend",
+            "--out",
+            work / "data",
+            "--count",
+            40,
+            "--resolution",
+            64,
+            "--radius",
+            4.0,
+            "--threads",
+            2,
+        )
     ckpt = work / "run" / "nerf.ckpt"
     if not ckpt.is_file():
         print(f"training a NeRF for {steps} steps ...", flush=True)
-        _run(python, "-m", "blender_nerf_deform.engine", "train", "--data", work / "data", "--out", work / "run",
-             "--steps", steps)
+        _run(
+            python,
+            "-m",
+            "blender_nerf_deform.engine",
+            "train",
+            "--data",
+            work / "data",
+            "--out",
+            work / "run",
+            "--steps",
+            steps,
+        )
 
     print(f"Load NeRF, Extract Mesh (resolution {resolution}), Build Cage, pin and two handles ...", flush=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -224,8 +250,14 @@ def awaited(worker_client, probe, changes) -> dict:
     total = time.perf_counter() - start
     if len(probe.applied) != len(changes):
         raise SystemExit(f"{len(changes)} changes but {len(probe.applied)} previews: a change did not reach the solver")
-    return {"n": len(changes), "rate": len(changes) / total, "latency": latencies, "handler": handler_s,
-            "apply": list(probe.apply_s), "solve": list(probe.solve_s)}
+    return {
+        "n": len(changes),
+        "rate": len(changes) / total,
+        "latency": latencies,
+        "handler": handler_s,
+        "apply": list(probe.apply_s),
+        "solve": list(probe.solve_s),
+    }
 
 
 def streamed(worker_client, probe, changes, input_hz: float) -> dict:
@@ -248,8 +280,12 @@ def streamed(worker_client, probe, changes, input_hz: float) -> dict:
         time.sleep(max(0.0, wake - time.perf_counter()))
     inputs_end = start + len(changes) * period
     shown_during = [t for t in probe.applied if t <= inputs_end]
-    return {"n": len(changes), "shown": len(probe.applied), "rate": len(shown_during) / (inputs_end - start),
-            "input_hz": input_hz}
+    return {
+        "n": len(changes),
+        "shown": len(probe.applied),
+        "rate": len(shown_during) / (inputs_end - start),
+        "input_hz": input_hz,
+    }
 
 
 def _ms(values) -> str:
@@ -267,9 +303,14 @@ def find_target(bpy, nerf_name: str | None, handle_name: str | None):
     candidates = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF"]
     if nerf_name:
         candidates = [o for o in candidates if o.name == nerf_name]
-    usable = [o for o in sorted(candidates, key=lambda o: o.name)
-              if o.nerf_deform.cage is not None and has_cage(o.nerf_deform.cage.data)
-              and o.nerf_deform.surface is not None and handles_of(o)]
+    usable = [
+        o
+        for o in sorted(candidates, key=lambda o: o.name)
+        if o.nerf_deform.cage is not None
+        and has_cage(o.nerf_deform.cage.data)
+        and o.nerf_deform.surface is not None
+        and handles_of(o)
+    ]
     if not usable:
         names = ", ".join(o.name for o in candidates) or "none"
         raise SystemExit(f"no NeRF object with a built cage, an extracted mesh and handles (NeRF objects: {names})")
@@ -285,20 +326,20 @@ def find_target(bpy, nerf_name: str | None, handle_name: str | None):
 def bench(bpy, args) -> None:
     import numpy as np
 
-    from blender_nerf_deform.addon.worker import jobs
-
-    from blender_nerf_deform.addon.deform import live_preview as preview
-
-    from blender_nerf_deform.addon.worker import client as worker_client
     from blender_nerf_deform.addon.data.cage_store import load_cage
     from blender_nerf_deform.addon.data.properties import PIN_GROUP, handles_of
+    from blender_nerf_deform.addon.deform import live_preview as preview
+    from blender_nerf_deform.addon.worker import client as worker_client
+    from blender_nerf_deform.addon.worker import jobs
 
     nerf, handle = find_target(bpy, args.nerf_object, args.handle)
     s = nerf.nerf_deform
     if args.mode:
         s.deformation_mode = args.mode
     if s.deformation_mode == "MODIFIERS":
-        raise SystemExit(f"{nerf.name} is in Cage Modifiers mode: its handles do not drive it (use --mode ARAP or AFFINE)")
+        raise SystemExit(
+            f"{nerf.name} is in Cage Modifiers mode: its handles do not drive it (use --mode ARAP or AFFINE)"
+        )
     surface = s.surface
     if surface.mode == "EDIT":
         bpy.context.view_layer.objects.active = surface
@@ -308,9 +349,11 @@ def bench(bpy, args) -> None:
     size = float(np.linalg.norm(np.ptp(rest, axis=0)))
     hello = jobs.worker(bpy.context).ensure_started()
     pinned = surface.vertex_groups.get(PIN_GROUP) is not None
-    print(f"NeRF '{nerf.name}': surface {len(surface.data.vertices)} vertices, cage {len(rest)} vertices / {len(tets)} tets, "
-          f"{len(handles_of(nerf))} handles{' + pinned region' if pinned else ''}, mode {s.deformation_mode}; "
-          f"moving '{handle.name}' ({args.count} poses, up to {0.1 * size:.3g} NeRF units)")
+    print(
+        f"NeRF '{nerf.name}': surface {len(surface.data.vertices)} vertices, cage {len(rest)} vertices / {len(tets)} tets, "
+        f"{len(handles_of(nerf))} handles{' + pinned region' if pinned else ''}, mode {s.deformation_mode}; "
+        f"moving '{handle.name}' ({args.count} poses, up to {0.1 * size:.3g} NeRF units)"
+    )
     print(f"worker: Python {hello.get('python', '?')}, torch {hello.get('torch', '?')}, cuda {hello.get('cuda', '?')}")
 
     base_location = handle.location.copy()
@@ -339,6 +382,7 @@ def bench(bpy, args) -> None:
         def change():
             set_pose(i)
             bpy.context.view_layer.update()
+
         return change
 
     # Keyframe playback: the path keyed on the handle, one pose per frame.
@@ -366,31 +410,54 @@ def bench(bpy, args) -> None:
     streamed_moves = [move(i) for i in range(max(args.count, round(args.drag_hz * args.seconds)))]
     results["moves streamed"] = streamed(worker_client, probe, streamed_moves, args.drag_hz)
 
-    for kind, label in (("frames", "frame changes (keyframe playback)"), ("moves", "direct handle moves (as a gizmo drag)")):
+    for kind, label in (
+        ("frames", "frame changes (keyframe playback)"),
+        ("moves", "direct handle moves (as a gizmo drag)"),
+    ):
         a, st = results[f"{kind} awaited"], results[f"{kind} streamed"]
         print(f"{label}:")
-        print(f"  awaited:  {a['rate']:.1f} updates/s over {a['n']} changes; latency change → shape key {_ms(a['latency'])}")
-        print(f"            worker solve {_ms(a['solve'])}; main thread per change {_ms(a['handler'])}, per applied answer {_ms(a['apply'])}")
-        print(f"  streamed: {st['rate']:.1f} updates/s with changes at {st['input_hz']:.0f}/s "
-              f"({st['shown']} of {st['n']} poses shown, newest wins; drained every {1000 * worker_client._DRAIN_BUSY_S:.0f} ms)")
+        print(
+            f"  awaited:  {a['rate']:.1f} updates/s over {a['n']} changes; latency change → shape key {_ms(a['latency'])}"
+        )
+        print(
+            f"            worker solve {_ms(a['solve'])}; main thread per change {_ms(a['handler'])}, per applied answer {_ms(a['apply'])}"
+        )
+        print(
+            f"  streamed: {st['rate']:.1f} updates/s with changes at {st['input_hz']:.0f}/s "
+            f"({st['shown']} of {st['n']} poses shown, newest wins; drained every {1000 * worker_client._DRAIN_BUSY_S:.0f} ms)"
+        )
     a = results["frames awaited"]
-    print(f"SUMMARY preview updates/s: playback awaited {a['rate']:.1f}, streamed {results['frames streamed']['rate']:.1f}; "
-          f"moves awaited {results['moves awaited']['rate']:.1f}, streamed {results['moves streamed']['rate']:.1f}; "
-          f"solve latency {_ms(a['latency'])}")
+    print(
+        f"SUMMARY preview updates/s: playback awaited {a['rate']:.1f}, streamed {results['frames streamed']['rate']:.1f}; "
+        f"moves awaited {results['moves awaited']['rate']:.1f}, streamed {results['moves streamed']['rate']:.1f}; "
+        f"solve latency {_ms(a['latency'])}"
+    )
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--blend", type=Path, help="a .blend with a NeRF object, its cage and handles (default: the bench scene)")
-    parser.add_argument("--nerf-object", help="which NeRF object (default: the first, by name, that has a cage and handles)")
+    parser.add_argument(
+        "--blend", type=Path, help="a .blend with a NeRF object, its cage and handles (default: the bench scene)"
+    )
+    parser.add_argument(
+        "--nerf-object", help="which NeRF object (default: the first, by name, that has a cage and handles)"
+    )
     parser.add_argument("--handle", help="which handle to move (default: the NeRF's first, by name)")
     parser.add_argument("--count", type=int, default=30, help="poses (frames, moves) per measurement (default 30)")
-    parser.add_argument("--seconds", type=float, default=3.0, help="how long the streamed input runs (default 3; the path repeats)")
+    parser.add_argument(
+        "--seconds", type=float, default=3.0, help="how long the streamed input runs (default 3; the path repeats)"
+    )
     parser.add_argument("--drag-hz", type=float, default=60.0, help="rate of direct moves when streamed (default 60)")
     parser.add_argument("--mode", choices=("ARAP", "AFFINE"), help="deformation mode (default: the NeRF's own)")
-    parser.add_argument("--work", type=Path, default=REPO / "runs" / "bench_preview", help="where the bench scene is built and kept")
-    parser.add_argument("--steps", type=int, default=1000, help="training steps of the bench scene's NeRF (default 1000)")
-    parser.add_argument("--resolution", type=int, default=128, help="Extract Mesh resolution of the bench scene (default 128)")
+    parser.add_argument(
+        "--work", type=Path, default=REPO / "runs" / "bench_preview", help="where the bench scene is built and kept"
+    )
+    parser.add_argument(
+        "--steps", type=int, default=1000, help="training steps of the bench scene's NeRF (default 1000)"
+    )
+    parser.add_argument(
+        "--resolution", type=int, default=128, help="Extract Mesh resolution of the bench scene (default 128)"
+    )
     args = parser.parse_args(argv)
     if args.count < 2:
         parser.error("--count must be at least 2")

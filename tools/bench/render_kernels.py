@@ -41,9 +41,11 @@ def main() -> int:
     tau = torch.rand(1000000, generator=g) * 0.1
     rays = torch.sort(torch.randint(0, 30000, (1000000,), generator=g)).values
     model = NerfModel(NerfConfig(contraction="linf"))
-    for name, f in (("SH encoding, 300k directions", lambda: sh_encode(d)),
-                    ("contraction, 1M points", lambda: model.normalize(p)),
-                    ("transmittance, 1M samples", lambda: renderer._exclusive_transmittance(tau, rays, 30000))):
+    for name, f in (
+        ("SH encoding, 300k directions", lambda: sh_encode(d)),
+        ("contraction, 1M points", lambda: model.normalize(p)),
+        ("transmittance, 1M samples", lambda: renderer._exclusive_transmittance(tau, rays, 30000)),
+    ):
         fast = best_ms(f)
         with backend.forced("torch"):
             slow = best_ms(f)

@@ -18,10 +18,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from nerf_train import evaluate, split_views  # noqa: E402  (its splits; its PSNR, frame time and samples per ray)
+
 from blender_nerf_deform.engine.nerf.checkpoint import load_nerf  # noqa: E402
 from blender_nerf_deform.engine.nerf.dataset import load_dataset  # noqa: E402
 from blender_nerf_deform.engine.nerf.renderer import render_image  # noqa: E402
-from nerf_train import evaluate, split_views  # noqa: E402  (its splits; its PSNR, frame time and samples per ray)
 
 
 def main() -> int:
@@ -38,7 +39,10 @@ def main() -> int:
     render_image(model, ds.cameras[0])  # warm-up: kernels, allocator
     for substeps in args.substeps:
         results = {split: evaluate(model, ds.subset(views), substeps=substeps) for split, views in splits.items()}
-        row = {"substeps": substeps, **{f"{split}_{key}": value for split, r in results.items() for key, value in r.items()}}
+        row = {
+            "substeps": substeps,
+            **{f"{split}_{key}": value for split, r in results.items() for key, value in r.items()},
+        }
         print(json.dumps(row), flush=True)
     return 0
 

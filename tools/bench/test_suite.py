@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-COUNTER = '''
+COUNTER = """
 import atexit, os, sys
 def _log():
     try:
@@ -34,7 +34,7 @@ def _log():
     except Exception:
         pass
 atexit.register(_log)
-'''
+"""
 
 
 def role(kind: str, argv: str) -> str:
@@ -64,23 +64,35 @@ def main(argv=None) -> int:
     (work / "sitecustomize.py").write_text(COUNTER)
     processes = work / "processes.tsv"
     log = args.log or work / "make_test.log"
-    env = {**os.environ, "NERF_SUITE_PROCESS_LOG": str(processes),
-           "PYTHONPATH": os.pathsep.join(p for p in (str(work), os.environ.get("PYTHONPATH", "")) if p)}
+    env = {
+        **os.environ,
+        "NERF_SUITE_PROCESS_LOG": str(processes),
+        "PYTHONPATH": os.pathsep.join(p for p in (str(work), os.environ.get("PYTHONPATH", "")) if p),
+    }
     started = time.perf_counter()
     with open(log, "w") as out:
-        proc = subprocess.run(["make", "test", "PYTEST_ARGS=--durations=15", *args.make_args.split()],
-                              cwd=args.checkout, env=env, stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.run(
+            ["make", "test", "PYTEST_ARGS=--durations=15", *args.make_args.split()],
+            cwd=args.checkout,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     wall = time.perf_counter() - started
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)  # every process make waited for, and theirs
     cpu = usage.ru_utime + usage.ru_stime
     text = log.read_text(errors="replace")
 
     summary = [line for line in text.splitlines() if re.search(r"\d+ (passed|failed)", line)]
-    print(f"make test: exit {proc.returncode}, wall {wall:.0f} s ({wall / 60:.1f} min); "
-          f"{summary[-1].strip('= ') if summary else 'no pytest summary'}")
+    print(
+        f"make test: exit {proc.returncode}, wall {wall:.0f} s ({wall / 60:.1f} min); "
+        f"{summary[-1].strip('= ') if summary else 'no pytest summary'}"
+    )
     # Processes nobody waited for (killed, orphaned) are not counted: a floor, as the counts below.
-    print(f"CPU (user + system) of the run's processes: {cpu / 60:.1f} min, {100 * cpu / (wall * os.cpu_count()):.0f} % "
-          f"of the machine's {os.cpu_count()} cores over the wall time")
+    print(
+        f"CPU (user + system) of the run's processes: {cpu / 60:.1f} min, {100 * cpu / (wall * os.cpu_count()):.0f} % "
+        f"of the machine's {os.cpu_count()} cores over the wall time"
+    )
     durations = text.split("slowest 15 durations", 1)[-1].splitlines()[1:17] if "slowest 15 durations" in text else []
     print("slowest 15:")
     for line in durations:

@@ -54,8 +54,10 @@ def main() -> int:
                 density[r].append(trainer.step()["density_samples_per_ray"])
             ms[r].append(1000 * (time.perf_counter() - t) / args.steps)
     for r in args.rounds:
-        print(f"round {r:6d}: {np.median(ms[r]):6.1f} ms a step (min {min(ms[r]):.1f}, max {max(ms[r]):.1f}); "
-              f"{np.mean(density[r]):.1f} density samples per ray; {trainer.last['rays']} rays a step")
+        print(
+            f"round {r:6d}: {np.median(ms[r]):6.1f} ms a step (min {min(ms[r]):.1f}, max {max(ms[r]):.1f}); "
+            f"{np.mean(density[r]):.1f} density samples per ray; {trainer.last['rays']} rays a step"
+        )
     return 0
 
 

@@ -38,8 +38,12 @@ sys.path.insert(0, str(REPO))
 
 
 def eval_psnr(ckpt: Path, data: str) -> float:
-    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "eval", "--nerf", str(ckpt), "--data", data],
-                          capture_output=True, text=True, cwd=REPO)
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", "eval", "--nerf", str(ckpt), "--data", data],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     if proc.returncode != 0:
         raise SystemExit(f"eval failed: {proc.stderr[-2000:]}")
     found = re.findall(r"PSNR[^0-9\-]*([0-9.]+)", proc.stdout + proc.stderr)
@@ -48,8 +52,12 @@ def eval_psnr(ckpt: Path, data: str) -> float:
 
 def run_cli(data: str, out: Path, seconds: float | None, steps: int | None) -> dict:
     budget = ["--max-seconds", str(seconds)] if seconds else ["--steps", str(steps)]
-    proc = subprocess.run([sys.executable, "-m", "blender_nerf_deform.engine", "train", "--data", data, "--out", str(out),
-                           *budget], capture_output=True, text=True, cwd=REPO)
+    proc = subprocess.run(
+        [sys.executable, "-m", "blender_nerf_deform.engine", "train", "--data", data, "--out", str(out), *budget],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     if proc.returncode != 0:
         raise SystemExit(f"train failed: {proc.stderr[-2000:]}")
     return json.loads((out / "train.json").read_text())
@@ -63,11 +71,14 @@ def run_ui(bpy, data: str, out: Path, seconds: float | None, steps: int | None) 
     client.ensure_started()
     state = {"done": None, "progress": 0.0, "message": "", "ticks": 0}
     budget = {"max_seconds": float(seconds)} if seconds else {"steps": int(steps)}
-    client.submit("train", {"data": data, "out": str(out), "device": "auto", "downscale": 1, "resume": False,
-                            **budget}, None,
-                  on_done=lambda result, arrays: state.update(done=("ok", result)),
-                  on_error=lambda error: state.update(done=("error", error)),
-                  on_progress=lambda f, msg: state.update(progress=f, message=msg))
+    client.submit(
+        "train",
+        {"data": data, "out": str(out), "device": "auto", "downscale": 1, "resume": False, **budget},
+        None,
+        on_done=lambda result, arrays: state.update(done=("ok", result)),
+        on_error=lambda error: state.update(done=("error", error)),
+        on_progress=lambda f, msg: state.update(progress=f, message=msg),
+    )
     while state["done"] is None:
         time.sleep(0.1)
         client.drain()
@@ -92,7 +103,9 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--warmup-steps", type=int, default=3)
-    p.add_argument("--paths", default="cli,ui,script", help="which paths to run, comma-separated (cli first: the ratios' base)")
+    p.add_argument(
+        "--paths", default="cli,ui,script", help="which paths to run, comma-separated (cli first: the ratios' base)"
+    )
     p.add_argument("--work", type=Path, default=None)
     args = p.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_train_ui_"))
@@ -107,20 +120,25 @@ def main(argv=None) -> int:
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     blender_nerf_deform.register()
-    paths = {"cli": lambda out: run_cli(data, out, args.seconds, None),
-             "ui": lambda out: run_ui(bpy, data, out, args.seconds, None),
-             "script": lambda out: run_script(bpy, data, out, args.seconds)}
+    paths = {
+        "cli": lambda out: run_cli(data, out, args.seconds, None),
+        "ui": lambda out: run_ui(bpy, data, out, args.seconds, None),
+        "script": lambda out: run_script(bpy, data, out, args.seconds),
+    }
     runs: dict[str, list[dict]] = {name: [] for name in args.paths.split(",") if name in paths}
     try:
         warm_cli = run_cli(data, work / "warmup_cli", None, args.warmup_steps)
         warm_ui = run_ui(bpy, data, work / "warmup_ui", None, args.warmup_steps)
-        print(f"warm-up ({args.warmup_steps} steps, trainer seconds, kernels compiled if their cache was cold): "
-              f"cli {warm_cli['seconds']:.1f} s, worker {warm_ui['seconds']:.1f} s", flush=True)
+        print(
+            f"warm-up ({args.warmup_steps} steps, trainer seconds, kernels compiled if their cache was cold): "
+            f"cli {warm_cli['seconds']:.1f} s, worker {warm_ui['seconds']:.1f} s",
+            flush=True,
+        )
         names = [n for n in args.paths.split(",") if n]
         if not names or any(n not in paths for n in names):
             raise SystemExit(f"--paths: a comma-separated choice of {', '.join(paths)}, got {args.paths!r}")
         for r in range(args.rounds):
-            for name in names[r % len(names):] + names[: r % len(names)]:
+            for name in names[r % len(names) :] + names[: r % len(names)]:
                 worker_client.shutdown()  # a fresh worker for each run, as each cli run is a fresh process
                 summary = paths[name](work / f"{name}_{r}")
                 runs[name].append(summary)
@@ -135,8 +153,10 @@ def main(argv=None) -> int:
         steps = [s["steps"] for s in summaries]
         mean = sum(steps) / len(steps)
         psnr = eval_psnr(work / f"{name}_{last}" / "nerf.ckpt", data)
-        print(f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  mean {mean:8.1f} ({mean / base_mean:6.1%} of {base})"
-              f"  batch PSNR {summaries[-1].get('psnr', float('nan')):.2f} dB  eval PSNR {psnr:.2f} dB (round {last + 1})")
+        print(
+            f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  mean {mean:8.1f} ({mean / base_mean:6.1%} of {base})"
+            f"  batch PSNR {summaries[-1].get('psnr', float('nan')):.2f} dB  eval PSNR {psnr:.2f} dB (round {last + 1})"
+        )
     return 0
 
 

@@ -42,8 +42,13 @@ def _camera_view(bpy, camera, width, height):
     from blender_nerf_deform.addon.render.viewport import pinhole_from_view
 
     scene = bpy.context.scene
-    window = camera.calc_matrix_camera(bpy.context.evaluated_depsgraph_get(), x=width, y=height,
-                                       scale_x=scene.render.pixel_aspect_x, scale_y=scene.render.pixel_aspect_y)
+    window = camera.calc_matrix_camera(
+        bpy.context.evaluated_depsgraph_get(),
+        x=width,
+        y=height,
+        scale_x=scene.render.pixel_aspect_x,
+        scale_y=scene.render.pixel_aspect_y,
+    )
     return pinhole_from_view(camera.matrix_world.inverted(), window, width, height)
 
 
@@ -99,20 +104,24 @@ def _add_second(bpy, nerf, camera, size):
 def bench(bpy, args) -> None:
     from mathutils import Vector
 
-    from blender_nerf_deform.addon.worker import jobs
     from blender_nerf_deform.addon.render.frame import render_frame
     from blender_nerf_deform.addon.render.viewport import ViewportRender
+    from blender_nerf_deform.addon.worker import jobs
 
     nerf, handle = _find(bpy, args.nerf_object)
     scene = bpy.context.scene
     camera = scene.camera
     client = jobs.worker(bpy.context)
-    print(f"{args.blend.name}: {nerf.name}, moving {handle.name}; view {args.width}x{args.height} through "
-          f"{camera.name}; worker {client.ensure_started().get('python')}")
+    print(
+        f"{args.blend.name}: {nerf.name}, moving {handle.name}; view {args.width}x{args.height} through "
+        f"{camera.name}; worker {client.ensure_started().get('python')}"
+    )
     shown = Shown()
     viewport = shown.viewport = ViewportRender(shown)
     view = _camera_view(bpy, camera, args.width, args.height)
-    size = max(nerf.nerf_deform.aabb[3 + k] - nerf.nerf_deform.aabb[k] for k in range(3)) * max(nerf.matrix_world.to_scale())
+    size = max(nerf.nerf_deform.aabb[3 + k] - nerf.nerf_deform.aabb[k] for k in range(3)) * max(
+        nerf.matrix_world.to_scale()
+    )
     rest = handle.location.copy()
     if args.second_nerf:  # the viewport figures with two NeRF objects in view (the second at rest)
         _add_second(bpy, nerf, camera, size)
@@ -147,10 +156,14 @@ def bench(bpy, args) -> None:
         coarse.append(mine[0][0] - t0)
         full.append(mine[-1][0] - t0)
         assert [d for _t, d in mine] == list(render.downscales)
-    print(f"pose change -> first image (1/8, {view.width // 8}x{view.height // 8}): median {1e3 * statistics.median(coarse):.0f} ms "
-          f"({', '.join(f'{1e3 * c:.0f}' for c in coarse)})")
-    print(f"pose change -> full image ({view.width}x{view.height}): median {statistics.median(full):.2f} s "
-          f"({', '.join(f'{f:.2f}' for f in full)})")
+    print(
+        f"pose change -> first image (1/8, {view.width // 8}x{view.height // 8}): median {1e3 * statistics.median(coarse):.0f} ms "
+        f"({', '.join(f'{1e3 * c:.0f}' for c in coarse)})"
+    )
+    print(
+        f"pose change -> full image ({view.width}x{view.height}): median {statistics.median(full):.2f} s "
+        f"({', '.join(f'{f:.2f}' for f in full)})"
+    )
 
     # A drag: changes at drag_hz, answers drained at the timer's cadence.
     shown.events.clear()
@@ -176,9 +189,13 @@ def bench(bpy, args) -> None:
         started_at.setdefault(id(render), t)
     lags = [t - started_at[id(r)] for t, r, _d in images if id(r) in started_at]
     by_size = {d: sum(1 for *_x, dd in images if dd == d) for d in sorted({d for *_x, d in images}, reverse=True)}
-    print(f"drag at {args.drag_hz:g} Hz for {elapsed:.1f} s ({len(changes)} pose changes): {len(images) / elapsed:.1f} images/s shown "
-          f"(by downscale {by_size}), {sum(1 for *_x, d in images if d == 8) / elapsed:.1f} coarse/s; lag median "
-          f"{1e3 * statistics.median(lags):.0f} ms" if lags else "no image shown during the drag")
+    print(
+        f"drag at {args.drag_hz:g} Hz for {elapsed:.1f} s ({len(changes)} pose changes): {len(images) / elapsed:.1f} images/s shown "
+        f"(by downscale {by_size}), {sum(1 for *_x, d in images if d == 8) / elapsed:.1f} coarse/s; lag median "
+        f"{1e3 * statistics.median(lags):.0f} ms"
+        if lags
+        else "no image shown during the drag"
+    )
     handle.location = rest
     bpy.context.view_layer.update()
     viewport.stop()
@@ -207,22 +224,33 @@ def bench(bpy, args) -> None:
     _add_second(bpy, nerf, camera, size)
     two, frame_two = frame_seconds()
     covered = lambda f: float((f.rgba[..., 3] > 0.5).mean())  # noqa: E731
-    print(f"frame {width}x{height} (F12's path): one NeRF {one:.2f} s, two NeRFs {two:.2f} s ({two / one:.2f}x); "
-          f"pixels covered {100 * covered(frame_one):.0f}% and {100 * covered(frame_two):.0f}%")
+    print(
+        f"frame {width}x{height} (F12's path): one NeRF {one:.2f} s, two NeRFs {two:.2f} s ({two / one:.2f}x); "
+        f"pixels covered {100 * covered(frame_one):.0f}% and {100 * covered(frame_two):.0f}%"
+    )
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--second-nerf", action="store_true",
-                        help="measure with a second NeRF object of the same checkpoint in view (at rest)")
-    parser.add_argument("--blend", type=Path, default=Path("demo_out/demo.blend"),
-                        help="a .blend with a NeRF object, its cage and handles (default: the one make demo writes)")
+    parser.add_argument(
+        "--second-nerf",
+        action="store_true",
+        help="measure with a second NeRF object of the same checkpoint in view (at rest)",
+    )
+    parser.add_argument(
+        "--blend",
+        type=Path,
+        default=Path("demo_out/demo.blend"),
+        help="a .blend with a NeRF object, its cage and handles (default: the one make demo writes)",
+    )
     parser.add_argument("--nerf-object", help="which NeRF object (default: the first, by name, with handles)")
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=720)
     parser.add_argument("--poses", type=int, default=5, help="pose changes waited for to the full image (default 5)")
     parser.add_argument("--seconds", type=float, default=5.0, help="length of the drag (default 5)")
-    parser.add_argument("--drag-hz", type=float, default=30.0, help="pose changes per second during the drag (default 30)")
+    parser.add_argument(
+        "--drag-hz", type=float, default=30.0, help="pose changes per second during the drag (default 30)"
+    )
     args = parser.parse_args(argv)
     if not args.blend.is_file():
         raise SystemExit(f"{args.blend} does not exist")

@@ -45,9 +45,9 @@ def main(argv=None) -> int:
     import bpy
 
     import blender_nerf_deform
+    from blender_nerf_deform.addon.data.properties import handles_of
     from blender_nerf_deform.addon.deform import live_preview as preview
     from blender_nerf_deform.addon.worker import client as worker_client
-    from blender_nerf_deform.addon.data.properties import handles_of
 
     log: list[tuple[str, int]] = []
     write = worker_client.write_message
@@ -73,11 +73,15 @@ def main(argv=None) -> int:
         bpy.ops.wm.open_mainfile(filepath=str(args.blend.resolve()))
         scene = bpy.context.scene
         scene.render.resolution_percentage = args.percentage
-        nerf = next(o for o in sorted(bpy.data.objects, key=lambda o: o.name) if o.nerf_deform.role == "NERF" and handles_of(o))
+        nerf = next(
+            o for o in sorted(bpy.data.objects, key=lambda o: o.name) if o.nerf_deform.role == "NERF" and handles_of(o)
+        )
         handles = handles_of(nerf)
         handle = next((h for h in handles if h.name == args.handle), handles[0]) if args.handle else handles[0]
-        print(f"scene {args.blend}: NeRF {nerf.name}, mode {nerf.nerf_deform.deformation_mode}, "
-              f"surface {len(nerf.nerf_deform.surface.data.vertices)} vertices, cage {len(nerf.nerf_deform.cage.data.vertices)} vertices")
+        print(
+            f"scene {args.blend}: NeRF {nerf.name}, mode {nerf.nerf_deform.deformation_mode}, "
+            f"surface {len(nerf.nerf_deform.surface.data.vertices)} vertices, cage {len(nerf.nerf_deform.cage.data.vertices)} vertices"
+        )
 
         frames = []
         span = max(1, scene.frame_end - scene.frame_start)
@@ -91,9 +95,11 @@ def main(argv=None) -> int:
             # The render's own messages end with its "render" request; after it the preview catches up.
             last = max(i for i, (op, _n) in enumerate(log) if op == "render")
             frames.append(sum(n for _op, n in log[: last + 1]))
-            print(f"F12 frame {scene.frame_current}: {frames[-1]:,} bytes in the render's {last + 1} messages "
-                  f"({', '.join(op for op, _ in log[: last + 1])}); after it {sum(n for _op, n in log[last + 1:]):,} bytes "
-                  f"({', '.join(op for op, _ in log[last + 1:]) or 'none'})")
+            print(
+                f"F12 frame {scene.frame_current}: {frames[-1]:,} bytes in the render's {last + 1} messages "
+                f"({', '.join(op for op, _ in log[: last + 1])}); after it {sum(n for _op, n in log[last + 1 :]):,} bytes "
+                f"({', '.join(op for op, _ in log[last + 1 :]) or 'none'})"
+            )
 
         updates = []
         base = handle.location.copy()
@@ -106,8 +112,10 @@ def main(argv=None) -> int:
             print(f"preview update {k + 1}: {updates[-1]:,} bytes in {len(log)} messages")
         steady_f = statistics.median(frames[1:]) if len(frames) > 1 else frames[0]
         steady_u = statistics.median(updates[1:]) if len(updates) > 1 else updates[0]
-        print(f"SUMMARY bytes: F12 first frame {frames[0]:,}, later frames {steady_f:,.0f} (median); "
-              f"preview first update {updates[0]:,}, later updates {steady_u:,.0f} (median)")
+        print(
+            f"SUMMARY bytes: F12 first frame {frames[0]:,}, later frames {steady_f:,.0f} (median); "
+            f"preview first update {updates[0]:,}, later updates {steady_u:,.0f} (median)"
+        )
     finally:
         blender_nerf_deform.unregister()
         worker_client.write_message = write

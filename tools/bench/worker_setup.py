@@ -55,8 +55,10 @@ def main(argv=None) -> int:
         reuse = time.perf_counter() - started
         assert again.done == "ok" and again.reused, again.error
         size = folder_size(folder / "worker-env")
-        print(f"fresh setup: {fresh:.1f} s (pip cache {'on' if args.cache else 'off'}, torch {job.info['torch']}, "
-              f"{'CUDA' if job.info['cuda'] else 'CPU'}), environment {size / 2**20:.0f} MiB")
+        print(
+            f"fresh setup: {fresh:.1f} s (pip cache {'on' if args.cache else 'off'}, torch {job.info['torch']}, "
+            f"{'CUDA' if job.info['cuda'] else 'CPU'}), environment {size / 2**20:.0f} MiB"
+        )
         print(f"second press (reuse check): {reuse:.1f} s")
         print(f"ratio fresh / reuse: {fresh / reuse:.0f}x")
     finally:

@@ -29,8 +29,14 @@ from blender_nerf_deform.engine.service.protocol import read_message  # noqa: E4
 
 def hello_seconds(python: str, env: dict, cwd: str) -> float:
     start = time.perf_counter()
-    proc = subprocess.Popen([python, "-m", WORKER_MODULE], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, env=env, cwd=cwd)
+    proc = subprocess.Popen(
+        [python, "-m", WORKER_MODULE],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        env=env,
+        cwd=cwd,
+    )
     try:
         message = read_message(proc.stdout)
         if message is None or message[0].get("type") != "hello":
@@ -52,10 +58,16 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="worker_start_") as tmp:
         envs = {
             "add-on's environment": env,
-            "bytecode redirected, not written": {**env, "PYTHONPYCACHEPREFIX": str(Path(tmp) / "a"),
-                                                 "PYTHONDONTWRITEBYTECODE": "1"},
-            "bytecode redirected and written": {k: v for k, v in {**env, "PYTHONPYCACHEPREFIX": str(Path(tmp) / "b")}.items()
-                                                if k != "PYTHONDONTWRITEBYTECODE"},
+            "bytecode redirected, not written": {
+                **env,
+                "PYTHONPYCACHEPREFIX": str(Path(tmp) / "a"),
+                "PYTHONDONTWRITEBYTECODE": "1",
+            },
+            "bytecode redirected and written": {
+                k: v
+                for k, v in {**env, "PYTHONPYCACHEPREFIX": str(Path(tmp) / "b")}.items()
+                if k != "PYTHONDONTWRITEBYTECODE"
+            },
         }
         times: dict[str, list[float]] = {name: [] for name in envs}
         for _ in range(args.repeats):

@@ -112,7 +112,9 @@ class Options:
     seed: int = 0
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
     hemisphere: bool = False
-    min_elevation: float | None = None  # degrees; cameras from this elevation up to the zenith (None: sphere / hemisphere)
+    min_elevation: float | None = (
+        None  # degrees; cameras from this elevation up to the zenith (None: sphere / hemisphere)
+    )
     layout: str = "spiral"  # "spiral": even Fibonacci spiral, turned by the seed; "random": uniform random
     engine: str = "CYCLES"  # "CYCLES": Cycles on the CPU with `samples`; "KEEP": the scene's engine and sampling
     samples: int = 16
@@ -157,15 +159,23 @@ class Options:
             raise DatasetError(f"--sensor-fit must be one of {', '.join(SENSOR_FITS)}, got {self.sensor_fit!r}")
         if self.min_elevation is not None:
             if self.hemisphere:
-                raise DatasetError("--hemisphere and --min-elevation exclude each other "
-                                   "(--hemisphere is --min-elevation 0)")
+                raise DatasetError(
+                    "--hemisphere and --min-elevation exclude each other (--hemisphere is --min-elevation 0)"
+                )
             if not (math.isfinite(self.min_elevation) and -90.0 <= self.min_elevation < 90.0):
                 raise DatasetError(f"--min-elevation must be in [-90, 90) degrees, got {self.min_elevation!r}")
         if self.aabb is not None:
             lo, hi = (tuple(map(float, c)) for c in self.aabb)
-            if len(lo) != 3 or len(hi) != 3 or not all(map(math.isfinite, lo + hi)) or not all(a < b for a, b in zip(lo, hi)):
-                raise DatasetError(f"--aabb must be six finite numbers X0 Y0 Z0 X1 Y1 Z1 with X0 < X1, Y0 < Y1, "
-                                   f"Z0 < Z1, got {self.aabb!r}")
+            if (
+                len(lo) != 3
+                or len(hi) != 3
+                or not all(map(math.isfinite, lo + hi))
+                or not all(a < b for a, b in zip(lo, hi))
+            ):
+                raise DatasetError(
+                    f"--aabb must be six finite numbers X0 Y0 Z0 X1 Y1 Z1 with X0 < X1, Y0 < Y1, "
+                    f"Z0 < Z1, got {self.aabb!r}"
+                )
         if self.engine not in ENGINES:
             raise DatasetError(f"--engine must be one of {', '.join(ENGINES)}, got {self.engine!r}")
         if self.layout not in ("spiral", "random"):
@@ -181,8 +191,15 @@ class Options:
 # --------------------------------------------------------------------------- geometry (no bpy)
 
 
-def camera_positions(count: int, radius: float, target=(0.0, 0.0, 0.0), hemisphere: bool = False,
-                     seed: int = 0, layout: str = "spiral", min_elevation: float | None = None) -> np.ndarray:
+def camera_positions(
+    count: int,
+    radius: float,
+    target=(0.0, 0.0, 0.0),
+    hemisphere: bool = False,
+    seed: int = 0,
+    layout: str = "spiral",
+    min_elevation: float | None = None,
+) -> np.ndarray:
     """(count, 3) camera centres on a sphere (or the upper, +Z, hemisphere) around `target`.
 
     "spiral": a Fibonacci spiral (even coverage even for a few dozen views), turned
@@ -215,9 +232,16 @@ def intrinsics(scene, cam_obj) -> dict:
     from ..data.camera import pinhole_from_blender  # noqa: PLC0415
 
     pin = pinhole_from_blender(scene, cam_obj)
-    return {"fl_x": pin.fx, "fl_y": pin.fy, "cx": pin.cx, "cy": pin.cy, "w": pin.width, "h": pin.height,
-            "camera_angle_x": 2.0 * math.atan(0.5 * pin.width / pin.fx),
-            "camera_angle_y": 2.0 * math.atan(0.5 * pin.height / pin.fy)}
+    return {
+        "fl_x": pin.fx,
+        "fl_y": pin.fy,
+        "cx": pin.cx,
+        "cy": pin.cy,
+        "w": pin.width,
+        "h": pin.height,
+        "camera_angle_x": 2.0 * math.atan(0.5 * pin.width / pin.fx),
+        "camera_angle_y": 2.0 * math.atan(0.5 * pin.height / pin.fy),
+    }
 
 
 def project(points, transform_matrix, fl_x, fl_y, cx, cy) -> np.ndarray:
@@ -308,8 +332,15 @@ FILL = 0.8
 AABB_PAD = 0.05
 
 
-def selection_frame(bpy, objects, resolution=(200, 200), lens: float = 50.0, sensor_width: float = 36.0,
-                    fill: float = FILL, pad: float = AABB_PAD) -> dict:
+def selection_frame(
+    bpy,
+    objects,
+    resolution=(200, 200),
+    lens: float = 50.0,
+    sensor_width: float = 36.0,
+    fill: float = FILL,
+    pad: float = AABB_PAD,
+) -> dict:
     """Where to aim at `objects` (renderable, evaluated, world space): {"bounds": (lo, hi),
     "target": the centre of their bounding box, "radius": the distance at which their bounding
     sphere spans `fill` of the narrower side of a `resolution` picture through a `lens` mm lens on
@@ -318,8 +349,10 @@ def selection_frame(bpy, objects, resolution=(200, 200), lens: float = 50.0, sen
     objects = renderable(objects)
     bounds = _scene_bounds(bpy, None, objects) if objects else None
     if bounds is None:
-        raise DatasetError("none of the selected objects renders (select a mesh, curve, text, volume or point cloud "
-                           "that is not hidden from render)")
+        raise DatasetError(
+            "none of the selected objects renders (select a mesh, curve, text, volume or point cloud "
+            "that is not hidden from render)"
+        )
     lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
     centre = 0.5 * (lo + hi)
     extent = hi - lo
@@ -329,8 +362,12 @@ def selection_frame(bpy, objects, resolution=(200, 200), lens: float = 50.0, sen
     half_angle = math.atan(0.5 * min(w, h) / focal_px)
     radius = sphere / (fill * math.sin(half_angle))
     grow = pad * max(float(extent.max()), 1e-3)
-    return {"bounds": (tuple(map(float, lo)), tuple(map(float, hi))), "target": tuple(map(float, centre)),
-            "radius": float(radius), "aabb": (tuple(map(float, lo - grow)), tuple(map(float, hi + grow)))}
+    return {
+        "bounds": (tuple(map(float, lo)), tuple(map(float, hi))),
+        "target": tuple(map(float, centre)),
+        "radius": float(radius),
+        "aabb": (tuple(map(float, lo - grow)), tuple(map(float, hi + grow))),
+    }
 
 
 def _scene_bounds(bpy, scene, objects):
@@ -379,7 +416,9 @@ def _configure_render(scene, opts: Options) -> None:
     render.film_transparent = not opts.opaque
     render.resolution_x, render.resolution_y = opts.resolution
     render.resolution_percentage = 100
-    render.pixel_aspect_x, render.pixel_aspect_y = (opts.pixel_aspect, 1.0) if opts.pixel_aspect >= 1 else (1.0, 1.0 / opts.pixel_aspect)
+    render.pixel_aspect_x, render.pixel_aspect_y = (
+        (opts.pixel_aspect, 1.0) if opts.pixel_aspect >= 1 else (1.0, 1.0 / opts.pixel_aspect)
+    )
     render.use_border = False
     # The dataset is the film itself: no compositor or sequencer strips (they may drop alpha
     # or change the look), no stereo views, no motion blur, only the active view layer.
@@ -411,11 +450,27 @@ def _configure_render(scene, opts: Options) -> None:
 def _render_settings_to_restore(scene):
     r, c, v, s = scene.render, getattr(scene, "cycles", None), scene.view_settings, scene.render.image_settings
     pairs = [(scene, "camera")]
-    pairs += [(r, n) for n in ("engine", "film_transparent", "resolution_x", "resolution_y", "resolution_percentage",
-                              "pixel_aspect_x", "pixel_aspect_y", "use_border", "use_persistent_data",
-                              "use_compositing", "use_sequencer", "use_multiview", "use_motion_blur",
-                              "use_single_layer",
-                              "threads_mode", "threads")]
+    pairs += [
+        (r, n)
+        for n in (
+            "engine",
+            "film_transparent",
+            "resolution_x",
+            "resolution_y",
+            "resolution_percentage",
+            "pixel_aspect_x",
+            "pixel_aspect_y",
+            "use_border",
+            "use_persistent_data",
+            "use_compositing",
+            "use_sequencer",
+            "use_multiview",
+            "use_motion_blur",
+            "use_single_layer",
+            "threads_mode",
+            "threads",
+        )
+    ]
     if c is not None:
         pairs += [(c, n) for n in ("device", "samples", "use_denoising", "seed", "pixel_filter_type", "filter_width")]
     pairs += [(v, n) for n in ("view_transform", "look", "exposure", "gamma", "use_curve_mapping")]
@@ -442,8 +497,21 @@ def _quiet_stdout(enabled: bool):
         os.close(devnull)
 
 
-def _render_views(bpy, scene, cam_obj, positions, target, out_dir: Path, opts: Options, label: str,
-                  progress, quiet: bool, on_view=None, done_before: int = 0, total: int = 0) -> list[dict]:
+def _render_views(
+    bpy,
+    scene,
+    cam_obj,
+    positions,
+    target,
+    out_dir: Path,
+    opts: Options,
+    label: str,
+    progress,
+    quiet: bool,
+    on_view=None,
+    done_before: int = 0,
+    total: int = 0,
+) -> list[dict]:
     from mathutils import Matrix, Vector  # noqa: PLC0415
 
     images = out_dir / "images"
@@ -468,8 +536,9 @@ def _render_views(bpy, scene, cam_obj, positions, target, out_dir: Path, opts: O
             with contextlib.suppress(FileNotFoundError):
                 partial.unlink()
             lines = [line for line in str(exc).strip().splitlines() if line.strip()]
-            raise DatasetError(f"Blender failed to render view {k} ({final}): "
-                               f"{lines[-1] if lines else 'unknown error'}") from exc
+            raise DatasetError(
+                f"Blender failed to render view {k} ({final}): {lines[-1] if lines else 'unknown error'}"
+            ) from exc
         if not partial.is_file():
             raise DatasetError(f"Blender rendered view {k} but wrote no image to {partial}")
         os.replace(partial, final)
@@ -530,8 +599,10 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
     objects = _renderable_objects(scene)
     where = f"{blend}" if blend is not None else "the loaded scene"
     if not objects:
-        raise DatasetError(f"--blend: {where} has no objects to render in scene {scene.name!r} "
-                           f"(no visible mesh, curve, text, volume or point cloud)")
+        raise DatasetError(
+            f"--blend: {where} has no objects to render in scene {scene.name!r} "
+            f"(no visible mesh, curve, text, volume or point cloud)"
+        )
     bounds = _scene_bounds(bpy, scene, objects)
     far = 1000.0
     if bounds is not None:
@@ -542,8 +613,10 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
         inside = np.all(lo - 1e-9 <= target) and np.all(target <= hi + 1e-9)
         # (An opaque capture inside a room has its cameras inside the scene's box on purpose.)
         if opts.radius < extent and progress and inside and not opts.opaque:
-            progress(f"warning: --radius {opts.radius} may put cameras inside the scene "
-                     f"(objects reach {extent:.3g} from the target)")
+            progress(
+                f"warning: --radius {opts.radius} may put cameras inside the scene "
+                f"(objects reach {extent:.3g} from the target)"
+            )
 
     out.mkdir(parents=True, exist_ok=True)
     # A folder being re-rendered must not keep describing the old views while its images change:
@@ -575,40 +648,71 @@ def _make(bpy, scene, out: Path, blend, opts: Options, progress, quiet: bool, st
                 "blend": str(blend) if blend is not None else None,
                 "blender": bpy.app.version_string,
                 "device": getattr(getattr(scene, "cycles", None), "device", None)
-                if scene.render.engine == "CYCLES" else None,
+                if scene.render.engine == "CYCLES"
+                else None,
                 "view_transform": scene.view_settings.view_transform,
                 "alpha": "none (opaque film, RGB images: the background is part of the capture)"
-                         if opts.opaque else "straight",
+                if opts.opaque
+                else "straight",
                 "pixel_centres": "ray of pixel (i, j) = ((i + 0.5 - cx) / fl_x, -(j + 0.5 - cy) / fl_y, -1)",
                 **{k: v for k, v in asdict(opts).items() if k not in ("extras",)},
                 **opts.extras,
             }
-            generator["lens"], generator["sensor_fit"], generator["shift"] = cam_data.lens, cam_data.sensor_fit, list(opts.shift)
+            generator["lens"], generator["sensor_fit"], generator["shift"] = (
+                cam_data.lens,
+                cam_data.sensor_fit,
+                list(opts.shift),
+            )
             # The engine that rendered (the option's "KEEP" names no engine), and the option itself.
             generator["engine"], generator["engine_option"] = scene.render.engine, opts.engine
             if opts.engine == "KEEP" and scene.render.engine == "CYCLES":
                 generator["samples"], generator["denoise"] = scene.cycles.samples, scene.cycles.use_denoising
 
             box = {} if opts.aabb is None else {"aabb": [list(map(float, c)) for c in opts.aabb]}
-            positions = camera_positions(opts.count, opts.radius, opts.target, opts.hemisphere, opts.seed, opts.layout,
-                                         opts.min_elevation)
+            positions = camera_positions(
+                opts.count, opts.radius, opts.target, opts.hemisphere, opts.seed, opts.layout, opts.min_elevation
+            )
             total = opts.count + opts.test_count
-            frames = _render_views(bpy, scene, cam_obj, positions, opts.target, out, opts, "train", progress, quiet,
-                                   on_view, 0, total)
+            frames = _render_views(
+                bpy, scene, cam_obj, positions, opts.target, out, opts, "train", progress, quiet, on_view, 0, total
+            )
             transforms = out / "transforms.json"
-            write_json_atomic(transforms, {**intr, **box, "frames": frames, "generator": {**generator, "split": "train"}})
+            write_json_atomic(
+                transforms, {**intr, **box, "frames": frames, "generator": {**generator, "split": "train"}}
+            )
 
             test_transforms = None
             if opts.test_count:
                 # Other views than the training ones: uniform random, from a different stream of the seed.
-                test_positions = camera_positions(opts.test_count, opts.radius, opts.target, opts.hemisphere,
-                                                  opts.seed + 1_000_003, "random", opts.min_elevation)
+                test_positions = camera_positions(
+                    opts.test_count,
+                    opts.radius,
+                    opts.target,
+                    opts.hemisphere,
+                    opts.seed + 1_000_003,
+                    "random",
+                    opts.min_elevation,
+                )
                 test_dir = out / "test"
-                test_frames = _render_views(bpy, scene, cam_obj, test_positions, opts.target, test_dir, opts,
-                                            "test", progress, quiet, on_view, opts.count, total)
+                test_frames = _render_views(
+                    bpy,
+                    scene,
+                    cam_obj,
+                    test_positions,
+                    opts.target,
+                    test_dir,
+                    opts,
+                    "test",
+                    progress,
+                    quiet,
+                    on_view,
+                    opts.count,
+                    total,
+                )
                 test_transforms = test_dir / "transforms.json"
-                write_json_atomic(test_transforms, {**intr, **box, "frames": test_frames,
-                                                    "generator": {**generator, "split": "test"}})
+                write_json_atomic(
+                    test_transforms, {**intr, **box, "frames": test_frames, "generator": {**generator, "split": "test"}}
+                )
     finally:
         bpy.data.objects.remove(cam_obj)
         bpy.data.cameras.remove(cam_data)

@@ -60,7 +60,7 @@ from .runner import PREFIX
 
 RUNNER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "runner.py")
 DATASET_ENTRIES = {"transforms.json", "images", "test"}  # what a destination may hold to be replaced
-_live: set["CaptureJob"] = set()
+_live: set[CaptureJob] = set()
 
 
 class CaptureError(Exception):
@@ -96,8 +96,9 @@ def _check_destination(dest: str) -> None:
         foreign = [e for e in entries if e not in DATASET_ENTRIES]
         if foreign:
             shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-            raise CaptureError(f"output folder {dest} holds other files than a dataset ({shown}): "
-                               f"pick an empty or new folder")
+            raise CaptureError(
+                f"output folder {dest} holds other files than a dataset ({shown}): pick an empty or new folder"
+            )
 
 
 def _make_staging(dest: str) -> str:
@@ -110,8 +111,9 @@ def _make_staging(dest: str) -> str:
     try:
         return tempfile.mkdtemp(prefix=f".{name}.capturing-{os.getpid()}-", dir=parent)
     except OSError as exc:
-        raise CaptureError(f"cannot write in {parent} ({exc.strerror or exc}): pick an output folder you can "
-                           f"write to") from exc
+        raise CaptureError(
+            f"cannot write in {parent} ({exc.strerror or exc}): pick an output folder you can write to"
+        ) from exc
 
 
 def _remove_stale_staging(parent: str, name: str) -> None:
@@ -180,9 +182,16 @@ class CaptureJob:
     def start(self) -> None:
         self.started = time.perf_counter()
         try:
-            self._proc = subprocess.Popen(self.command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                          stderr=subprocess.STDOUT, text=True, encoding="utf-8", errors="replace",
-                                          bufsize=1)
+            self._proc = subprocess.Popen(
+                self.command,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                encoding="utf-8",
+                errors="replace",
+                bufsize=1,
+            )
         except OSError as exc:
             self._cleanup()
             self.state = "failed"
@@ -226,7 +235,7 @@ class CaptureJob:
                 self._tail.append(line.strip())
             return
         try:
-            message = json.loads(line[len(PREFIX):])
+            message = json.loads(line[len(PREFIX) :])
         except ValueError:
             self._tail.append(line)
             return
@@ -313,19 +322,31 @@ def _cancel_on_load(*_args) -> None:
 def _options(settings, frame: dict, scene) -> dict:
     min_elevation = float(settings.min_elevation) if settings.use_min_elevation else None
     options = {
-        "count": int(settings.count), "test_count": int(settings.test_count),
-        "resolution": [int(v) for v in settings.resolution], "seed": int(settings.seed),
+        "count": int(settings.count),
+        "test_count": int(settings.test_count),
+        "resolution": [int(v) for v in settings.resolution],
+        "seed": int(settings.seed),
         "radius": float(settings.radius) if settings.radius > 0 else frame["radius"],
-        "target": list(frame["target"]), "aabb": [list(c) for c in frame["aabb"]],
-        "hemisphere": bool(settings.hemisphere) and min_elevation is None, "min_elevation": min_elevation,
-        "engine": settings.engine, "samples": int(settings.samples), "opaque": not settings.transparent,
-        "lens": float(settings.lens), "frame": int(scene.frame_current),
-        "extras": {"tool": "Capture Dataset (blender_nerf_deform)", "scene": scene.name,
-                   "selection": frame["names"], "selection_bounds": [list(c) for c in frame["bounds"]]},
+        "target": list(frame["target"]),
+        "aabb": [list(c) for c in frame["aabb"]],
+        "hemisphere": bool(settings.hemisphere) and min_elevation is None,
+        "min_elevation": min_elevation,
+        "engine": settings.engine,
+        "samples": int(settings.samples),
+        "opaque": not settings.transparent,
+        "lens": float(settings.lens),
+        "frame": int(scene.frame_current),
+        "extras": {
+            "tool": "Capture Dataset (blender_nerf_deform)",
+            "scene": scene.name,
+            "selection": frame["names"],
+            "selection_bounds": [list(c) for c in frame["bounds"]],
+        },
     }
-    opts = dataset_capture.Options(**{k: tuple(v) if k in ("resolution", "target") else v
-                                      for k, v in options.items() if k != "aabb"},
-                                   aabb=tuple(map(tuple, options["aabb"])))
+    opts = dataset_capture.Options(
+        **{k: tuple(v) if k in ("resolution", "target") else v for k, v in options.items() if k != "aabb"},
+        aabb=tuple(map(tuple, options["aabb"])),
+    )
     try:
         opts.validate()
     except dataset_capture.DatasetError as exc:  # named as the panel names them, not as options
@@ -344,11 +365,15 @@ def start_capture(context, settings) -> CaptureJob:
     objects = dataset_capture.renderable(selected)
     if not objects:
         kinds = ", ".join(sorted({o.type.lower() for o in selected}))
-        raise CaptureError(f"none of the selected objects renders (selected: {kinds}): select a mesh, curve, text, "
-                           f"volume or point cloud that is not hidden from render")
+        raise CaptureError(
+            f"none of the selected objects renders (selected: {kinds}): select a mesh, curve, text, "
+            f"volume or point cloud that is not hidden from render"
+        )
     if settings.engine == "KEEP" and scene.render.engine not in dataset_capture.BUILTIN_ENGINES:
-        raise CaptureError(f"the scene's render engine {scene.render.engine!r} comes from an add-on, which the "
-                           f"background Blender does not load: set Engine to Cycles")
+        raise CaptureError(
+            f"the scene's render engine {scene.render.engine!r} comes from an add-on, which the "
+            f"background Blender does not load: set Engine to Cycles"
+        )
     try:
         frame = dataset_capture.selection_frame(bpy, objects, tuple(settings.resolution), float(settings.lens))
     except dataset_capture.DatasetError as exc:
@@ -365,24 +390,43 @@ def start_capture(context, settings) -> CaptureJob:
     workdir = tempfile.mkdtemp(prefix="nerf_deform_capture_")
     try:
         blend = os.path.join(workdir, "scene.blend")
-        if bpy.ops.wm.save_as_mainfile(filepath=blend, copy=True, check_existing=False) != {"FINISHED"} \
-                or not os.path.isfile(blend):
+        if bpy.ops.wm.save_as_mainfile(filepath=blend, copy=True, check_existing=False) != {
+            "FINISHED"
+        } or not os.path.isfile(blend):
             raise CaptureError(f"Blender could not save a copy of the scene to {blend}")
         keep = {o.name for o in objects}
-        hide = [o.name for o in scene.objects if settings.selected_only and o.name not in keep
-                and o.type in dataset_capture.RENDERABLE_TYPES]
+        hide = [
+            o.name
+            for o in scene.objects
+            if settings.selected_only and o.name not in keep and o.type in dataset_capture.RENDERABLE_TYPES
+        ]
         config = os.path.join(workdir, "capture.json")
         with open(config, "w", encoding="utf-8") as f:
-            json.dump({"blend": blend, "scene": scene.name, "out": staging, "hide": hide,
-                       "parent_pid": os.getpid(), "options": options}, f)
+            json.dump(
+                {
+                    "blend": blend,
+                    "scene": scene.name,
+                    "out": staging,
+                    "hide": hide,
+                    "parent_pid": os.getpid(),
+                    "options": options,
+                },
+                f,
+            )
     except (OSError, RuntimeError, CaptureError) as exc:
         shutil.rmtree(staging, ignore_errors=True)
         shutil.rmtree(workdir, ignore_errors=True)
         if isinstance(exc, CaptureError):
             raise
         raise CaptureError(f"cannot save a copy of the scene for the renderer: {exc}") from exc
-    job = CaptureJob(runner_command(blend, config), dest, staging, workdir,
-                     total=int(settings.count) + int(settings.test_count), scene=scene.name)
+    job = CaptureJob(
+        runner_command(blend, config),
+        dest,
+        staging,
+        workdir,
+        total=int(settings.count) + int(settings.test_count),
+        scene=scene.name,
+    )
     job.start()
     return job
 
@@ -401,40 +445,97 @@ def finish(job: CaptureJob) -> str:
 class _CaptureProperties:
     """The settings of a capture, shared by the operator and the scene's panel settings."""
 
-    output: StringProperty(name="Output Folder", subtype="DIR_PATH",
-                           description="Folder of the dataset (empty: //nerf_datasets/<scene name> beside the saved "
-                                       ".blend, else the extension's user folder). An existing dataset there is "
-                                       "replaced once the new one is complete")
+    output: StringProperty(
+        name="Output Folder",
+        subtype="DIR_PATH",
+        description="Folder of the dataset (empty: //nerf_datasets/<scene name> beside the saved "
+        ".blend, else the extension's user folder). An existing dataset there is "
+        "replaced once the new one is complete",
+    )
     count: IntProperty(name="Views", default=100, min=1, max=10000, description="Training views")
-    test_count: IntProperty(name="Test Views", default=0, min=0, max=10000,
-                            description="Other random views written to test/ (for PSNR on held-out views)")
-    radius: FloatProperty(name="Radius", default=0.0, min=0.0, subtype="DISTANCE", unit="LENGTH",
-                          description="Distance of the cameras from the centre of the selection "
-                                      "(0: automatic, the selection fills the picture)")
-    resolution: IntVectorProperty(name="Resolution", size=2, default=(200, 200), min=8, max=16384,
-                                  description="Width and height of the views in pixels")
-    lens: FloatProperty(name="Focal Length", default=50.0, min=1.0, max=5000.0, subtype="DISTANCE_CAMERA",
-                        description="Focal length of the cameras in mm (36 mm sensor)")
+    test_count: IntProperty(
+        name="Test Views",
+        default=0,
+        min=0,
+        max=10000,
+        description="Other random views written to test/ (for PSNR on held-out views)",
+    )
+    radius: FloatProperty(
+        name="Radius",
+        default=0.0,
+        min=0.0,
+        subtype="DISTANCE",
+        unit="LENGTH",
+        description="Distance of the cameras from the centre of the selection "
+        "(0: automatic, the selection fills the picture)",
+    )
+    resolution: IntVectorProperty(
+        name="Resolution",
+        size=2,
+        default=(200, 200),
+        min=8,
+        max=16384,
+        description="Width and height of the views in pixels",
+    )
+    lens: FloatProperty(
+        name="Focal Length",
+        default=50.0,
+        min=1.0,
+        max=5000.0,
+        subtype="DISTANCE_CAMERA",
+        description="Focal length of the cameras in mm (36 mm sensor)",
+    )
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the camera layout (and of Cycles)")
     hemisphere: BoolProperty(name="Hemisphere", default=False, description="Cameras on the upper (+Z) half only")
-    use_min_elevation: BoolProperty(name="Minimum Elevation", default=False,
-                                    description="Cameras only above an elevation (replaces Hemisphere)")
-    min_elevation: FloatProperty(name="Elevation", default=-15.0, min=-90.0, max=89.0,
-                                 description="Lowest camera elevation in degrees above the selection's centre")
-    engine: EnumProperty(name="Engine", default="KEEP", items=(
-        ("KEEP", "Scene's Engine", "The scene's render engine and its sampling settings"),
-        ("CYCLES", "Cycles (CPU)", "Cycles on the CPU with the samples below, deterministic")))
+    use_min_elevation: BoolProperty(
+        name="Minimum Elevation", default=False, description="Cameras only above an elevation (replaces Hemisphere)"
+    )
+    min_elevation: FloatProperty(
+        name="Elevation",
+        default=-15.0,
+        min=-90.0,
+        max=89.0,
+        description="Lowest camera elevation in degrees above the selection's centre",
+    )
+    engine: EnumProperty(
+        name="Engine",
+        default="KEEP",
+        items=(
+            ("KEEP", "Scene's Engine", "The scene's render engine and its sampling settings"),
+            ("CYCLES", "Cycles (CPU)", "Cycles on the CPU with the samples below, deterministic"),
+        ),
+    )
     samples: IntProperty(name="Samples", default=16, min=1, max=1 << 16, description="Cycles samples (Engine: Cycles)")
-    transparent: BoolProperty(name="Transparent", default=True,
-                              description="Transparent film: RGBA with straight alpha. Off: opaque RGB views with "
-                                          "the background (a room, the world) in them")
-    selected_only: BoolProperty(name="Selected Only", default=True,
-                                description="Render only the selected objects (the others are hidden in the "
-                                            "capture; lights and the world still light them)")
+    transparent: BoolProperty(
+        name="Transparent",
+        default=True,
+        description="Transparent film: RGBA with straight alpha. Off: opaque RGB views with "
+        "the background (a room, the world) in them",
+    )
+    selected_only: BoolProperty(
+        name="Selected Only",
+        default=True,
+        description="Render only the selected objects (the others are hidden in the "
+        "capture; lights and the world still light them)",
+    )
 
 
-CAPTURE_OPTIONS = ("output", "count", "test_count", "radius", "resolution", "lens", "seed", "hemisphere", "use_min_elevation",
-          "min_elevation", "engine", "samples", "transparent", "selected_only")
+CAPTURE_OPTIONS = (
+    "output",
+    "count",
+    "test_count",
+    "radius",
+    "resolution",
+    "lens",
+    "seed",
+    "hemisphere",
+    "use_min_elevation",
+    "min_elevation",
+    "engine",
+    "samples",
+    "transparent",
+    "selected_only",
+)
 
 
 class NERFDEFORM_OT_capture_dataset(_CaptureProperties, bpy.types.Operator):
@@ -488,7 +589,8 @@ class NERFDEFORM_OT_capture_dataset(_CaptureProperties, bpy.types.Operator):
         if not job.poll():
             context.window_manager.progress_update(int(100 * job.fraction))
             context.workspace.status_text_set(
-                f"{self.bl_label}: {job.done}/{job.total} views ({100 * job.fraction:.0f}%) (Esc to cancel)")
+                f"{self.bl_label}: {job.done}/{job.total} views ({100 * job.fraction:.0f}%) (Esc to cancel)"
+            )
             return {"RUNNING_MODAL"}
         wm = context.window_manager
         wm.event_timer_remove(self._timer)

@@ -52,7 +52,7 @@ def load_capture_module():
 
 
 def _config_path(argv) -> str:
-    args = argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
+    args = argv[argv.index("--") + 1 :] if "--" in argv else argv[1:]
     if len(args) != 1:
         raise SystemExit(f"usage: runner.py CONFIG.json (got {args!r})")
     return args[0]

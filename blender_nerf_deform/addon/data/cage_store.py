@@ -44,8 +44,9 @@ import numpy as np
 
 from ...engine.errors import EngineError
 from ...engine.geometry.barycentric import boundary_faces
+from ...engine.geometry.cage_refine import separate_regions as separate_cage_regions
+from ...engine.geometry.cage_refine import shared_vertices
 from ...engine.geometry.poses import MAX_COORDINATE
-from ...engine.geometry.cage_refine import separate_regions as separate_cage_regions, shared_vertices
 from ...engine.service.protocol import content_key
 from .mesh_attributes import part_labels, set_part_labels, vertex_group_members, vertex_group_weights
 from .properties import PIN_GROUP, CageDataError, handles_of, to_nerf_frame
@@ -162,19 +163,28 @@ def load_cage(cage_mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
         )
     bad = np.flatnonzero(~(np.isfinite(rest) & (np.abs(rest) <= MAX_COORDINATE)).all(axis=1))
     if len(bad):
-        raise damaged(cage_mesh, f"rest vertex {bad[0]} of its cage is {rest[bad[0]].tolist()}, not a finite point "
-                                 f"within {MAX_COORDINATE:g} NeRF units ({len(bad)} of {len(rest)} vertices are not)")
+        raise damaged(
+            cage_mesh,
+            f"rest vertex {bad[0]} of its cage is {rest[bad[0]].tolist()}, not a finite point "
+            f"within {MAX_COORDINATE:g} NeRF units ({len(bad)} of {len(rest)} vertices are not)",
+        )
     if not len(tets):
         raise damaged(cage_mesh, "its cage has no tets")
     out = np.flatnonzero(((tets < 0) | (tets >= len(rest))).any(axis=1))
     if len(out):
-        raise damaged(cage_mesh, f"tet {out[0]} of its cage names vertices {tets[out[0]].tolist()}, outside the "
-                                 f"cage's 0..{len(rest) - 1} ({len(out)} of {len(tets)} tets do)")
+        raise damaged(
+            cage_mesh,
+            f"tet {out[0]} of its cage names vertices {tets[out[0]].tolist()}, outside the "
+            f"cage's 0..{len(rest) - 1} ({len(out)} of {len(tets)} tets do)",
+        )
     ordered = np.sort(tets, axis=1)
     repeated = np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))
     if len(repeated):
-        raise damaged(cage_mesh, f"tet {repeated[0]} of its cage names a vertex twice ({tets[repeated[0]].tolist()}; "
-                                 f"{len(repeated)} of {len(tets)} tets do)")
+        raise damaged(
+            cage_mesh,
+            f"tet {repeated[0]} of its cage names a vertex twice ({tets[repeated[0]].tolist()}; "
+            f"{len(repeated)} of {len(tets)} tets do)",
+        )
     return rest, tets
 
 
@@ -267,7 +277,9 @@ def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.
     return co.reshape(-1, 3).astype(np.float64)
 
 
-def deformed_cage_in_nerf_frame(nerf: bpy.types.Object, cage_object: bpy.types.Object, depsgraph, to_nerf=None) -> np.ndarray:
+def deformed_cage_in_nerf_frame(
+    nerf: bpy.types.Object, cage_object: bpy.types.Object, depsgraph, to_nerf=None
+) -> np.ndarray:
     """The cage as its modifiers and its own placement deform it, in the NeRF's frame (`to_nerf`: the
     NeRF's evaluated world -> NeRF frame Matrix, when the caller has it)."""
     local = evaluated_cage_vertices(cage_object, depsgraph)
@@ -305,7 +317,9 @@ def load_embedding(mesh: bpy.types.Mesh, n_tets: int | None = None) -> tuple[np.
         raise CageDataError(f"mesh '{mesh.name}' is not embedded in a cage: run Build Cage")
     count = mesh.get(EMBED_COUNT_KEY)
     if not isinstance(count, int) or isinstance(count, bool):
-        raise damaged(mesh, f"its embedding's vertex count ({EMBED_COUNT_KEY}) is {_described(count)}, not a whole number")
+        raise damaged(
+            mesh, f"its embedding's vertex count ({EMBED_COUNT_KEY}) is {_described(count)}, not a whole number"
+        )
     if count != len(mesh.vertices):
         raise CageDataError(
             f"mesh '{mesh.name}' has {len(mesh.vertices)} vertices but was embedded with {count}: "
@@ -314,17 +328,25 @@ def load_embedding(mesh: bpy.types.Mesh, n_tets: int | None = None) -> tuple[np.
     tet_ids = _stored_array(mesh, EMBED_TET_KEY, "embedding's tets", integers=True, row=1)
     weights = _stored_array(mesh, EMBED_WEIGHTS_KEY, "embedding's weights", integers=False, row=4)
     if len(tet_ids) != count or len(weights) != count:
-        raise damaged(mesh, f"its embedding has {len(tet_ids)} tets and {len(weights)} weight rows for its {count} vertices")
+        raise damaged(
+            mesh, f"its embedding has {len(tet_ids)} tets and {len(weights)} weight rows for its {count} vertices"
+        )
     limit = n_tets if n_tets is not None else np.iinfo(np.int32).max
     out = np.flatnonzero((tet_ids < 0) | (tet_ids >= limit))
     if len(out):
         where = f"its cage's 0..{n_tets - 1}" if n_tets is not None else "any cage"
-        raise damaged(mesh, f"vertex {out[0]} is embedded in tet {tet_ids[out[0]]}, outside {where} "
-                            f"({len(out)} of {count} vertices are)")
+        raise damaged(
+            mesh,
+            f"vertex {out[0]} is embedded in tet {tet_ids[out[0]]}, outside {where} "
+            f"({len(out)} of {count} vertices are)",
+        )
     bad = np.flatnonzero(~np.isfinite(weights).all(axis=1) | (np.abs(weights.sum(axis=1) - 1.0) > 1e-3))
     if len(bad):
-        raise damaged(mesh, f"the embedding weights of vertex {bad[0]} are {weights[bad[0]].tolist()}, not finite "
-                            f"barycentric weights summing to 1 ({len(bad)} of {count} vertices' are not)")
+        raise damaged(
+            mesh,
+            f"the embedding weights of vertex {bad[0]} are {weights[bad[0]].tolist()}, not finite "
+            f"barycentric weights summing to 1 ({len(bad)} of {count} vertices' are not)",
+        )
     return tet_ids, weights
 
 
@@ -404,18 +426,28 @@ def separate_regions(nerf: bpy.types.Object) -> list[tuple[str, str]]:
     if not len(shared_vertices(tets, tet_ids, weights, regions, pinned, pins)):
         return []
     if cage.data.shape_keys is not None or cage.modifiers:
-        return [("WARNING", f"{cage.name} is not refined where {nerf.name}'s regions meet: its "
-                            f"{'shape keys' if cage.data.shape_keys is not None else 'modifiers'} need its vertices as "
-                            "built, so handles next to each other may stray from their transform by a few percent")]
+        return [
+            (
+                "WARNING",
+                f"{cage.name} is not refined where {nerf.name}'s regions meet: its "
+                f"{'shape keys' if cage.data.shape_keys is not None else 'modifiers'} need its vertices as "
+                "built, so handles next to each other may stray from their transform by a few percent",
+            )
+        ]
     try:
         separation = separate_cage_regions(rest, tets, tet_ids, weights, regions, pinned, pins)
     except EngineError as error:  # the cage is kept as it was, and so is the new region
         return [("WARNING", f"{cage.name} is not refined where {nerf.name}'s regions meet: {error}")]
     names = [h.name for h in handles] + ["the pinned region"]
-    lines = [("WARNING", f"{names[a]} and {names[b]} are too close to part on {cage.name}: leave a band of unselected "
-                         f"vertices about {2 * separation.edge:.2g} wide (NeRF units) between them, so that each follows "
-                         "its own transform (they stray by a few percent now)")
-             for a, b in separation.too_close]  # refining them would multiply the tets and part nothing
+    lines = [
+        (
+            "WARNING",
+            f"{names[a]} and {names[b]} are too close to part on {cage.name}: leave a band of unselected "
+            f"vertices about {2 * separation.edge:.2g} wide (NeRF units) between them, so that each follows "
+            "its own transform (they stray by a few percent now)",
+        )
+        for a, b in separation.too_close
+    ]  # refining them would multiply the tets and part nothing
     if separation.bisection is None:
         return lines
     groups = {name: w for name, w in vertex_group_weights(cage).items() if name != CUT_PIN_GROUP}

@@ -37,11 +37,13 @@ class Pinhole:
     def as_dict(self) -> dict:
         return asdict(self)
 
-    def downscaled(self, factor: int) -> "Pinhole":
+    def downscaled(self, factor: int) -> Pinhole:
         """The same view on a pixel grid `factor` times coarser (for progressive previews)."""
         width, height = max(1, self.width // factor), max(1, self.height // factor)
         sx, sy = width / self.width, height / self.height
-        return replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy)
+        return replace(
+            self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy
+        )
 
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """(N,3) world points → (N,2) pixel coordinates (x right, y down, pixel centres at .5)."""

@@ -47,11 +47,14 @@ def _operator_method(fn, name: str):
 
     # Blender checks the number of arguments a registered method takes.
     if name == "execute":
+
         def wrapper(self, context):
             return run(self, context)
     else:
+
         def wrapper(self, context, event):
             return run(self, context, event)
+
     functools.update_wrapper(wrapper, fn)
     setattr(wrapper, _GUARDED, True)
     return wrapper
@@ -68,11 +71,14 @@ def _engine_method(fn, name: str):
                 self.error_set(message)
 
     if name == "render":
+
         def wrapper(self, depsgraph):
             return run(self, depsgraph)
     else:
+
         def wrapper(self, context, depsgraph):
             return run(self, context, depsgraph)
+
     functools.update_wrapper(wrapper, fn)
     setattr(wrapper, _GUARDED, True)
     return wrapper

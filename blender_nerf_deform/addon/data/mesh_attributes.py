@@ -30,8 +30,12 @@ def _point_values(mesh: bpy.types.Mesh, name: str, data_type: str, dtype) -> np.
     """The point attribute `name` (one value per vertex), or None when the mesh has none (made
     elsewhere, or by an older version) or it is not one `data_type` value per vertex."""
     attribute = mesh.attributes.get(name)
-    if (attribute is None or attribute.domain != "POINT" or attribute.data_type != data_type
-            or len(attribute.data) != len(mesh.vertices)):  # (in Edit Mode the mesh's data is not in sync)
+    if (
+        attribute is None
+        or attribute.domain != "POINT"
+        or attribute.data_type != data_type
+        or len(attribute.data) != len(mesh.vertices)
+    ):  # (in Edit Mode the mesh's data is not in sync)
         return None
     values = np.zeros(len(mesh.vertices), dtype=dtype)
     attribute.data.foreach_get("value", values)

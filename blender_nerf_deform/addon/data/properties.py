@@ -24,7 +24,15 @@ to it, so it is not saved either.
 import bpy
 import numpy as np
 from bpy.app.handlers import persistent
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (
+    BoolProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
 
 from ...engine.nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
 from .guards import guarded
@@ -50,7 +58,11 @@ ROLES = (
 )
 
 DEFORMATION_MODES = (
-    ("ARAP", "ARAP from Handles", "Handles move their regions; pinned regions stay; everything else follows as rigidly as possible"),
+    (
+        "ARAP",
+        "ARAP from Handles",
+        "Handles move their regions; pinned regions stay; everything else follows as rigidly as possible",
+    ),
     ("AFFINE", "Affine Regions", "Each handle's region moves exactly by its handle's transform; the rest stays"),
     ("MODIFIERS", "Cage Modifiers", "The cage object's modifiers (Armature, Lattice, ...) deform the NeRF"),
 )
@@ -66,16 +78,25 @@ VOLUME_FRAMES = (
     ("RANGE", "Frame Range", "Bake each frame of the scene's range into a sequence the Volume object plays"),
 )
 VOLUME_SHADINGS = (
-    ("EMISSION", "Emission-Absorption", "As the NeRF renders: it emits its colour and hides what is behind it; "
-     "scene lights do not light it"),
-    ("LIT", "Lit", "It scatters the scene's light (its colour as albedo) and casts shadows: integration over faithfulness"),
+    (
+        "EMISSION",
+        "Emission-Absorption",
+        "As the NeRF renders: it emits its colour and hides what is behind it; scene lights do not light it",
+    ),
+    (
+        "LIT",
+        "Lit",
+        "It scatters the scene's light (its colour as albedo) and casts shadows: integration over faithfulness",
+    ),
 )
 
 PIN_GROUP = "NeRF Pin"
 # Blender 5.0 warns when a "//" path is stored in a property not declared blend-relative;
 # older versions (4.2-4.4) do not know the option.
 _BLEND_RELATIVE_PATH = (
-    {"PATH_SUPPORTS_BLEND_RELATIVE"} if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties else set()
+    {"PATH_SUPPORTS_BLEND_RELATIVE"}
+    if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties
+    else set()
 )
 IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -85,19 +106,31 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
 
     # On the NeRF object.
     checkpoint: StringProperty(
-        name="Checkpoint", subtype="FILE_PATH", description="NeRF checkpoint (nerf.ckpt), relative to the .blend when saved",
+        name="Checkpoint",
+        subtype="FILE_PATH",
+        description="NeRF checkpoint (nerf.ckpt), relative to the .blend when saved",
         options=_BLEND_RELATIVE_PATH,
     )
-    aabb: FloatVectorProperty(name="Bounds", size=6, description="NeRF's scene box in its own frame: min x y z, max x y z")
+    aabb: FloatVectorProperty(
+        name="Bounds", size=6, description="NeRF's scene box in its own frame: min x y z, max x y z"
+    )
     deformation_mode: EnumProperty(name="Deformation", items=DEFORMATION_MODES, default="ARAP")
     render_substeps: IntProperty(
-        name="Render Substeps", default=FINAL_SUBSTEPS, min=1, max=MAX_SUBSTEPS,
+        name="Render Substeps",
+        default=FINAL_SUBSTEPS,
+        min=1,
+        max=MAX_SUBSTEPS,
         description="Samples per step of this NeRF's march in renders (F12, Render Animation, blender -b, and "
-                    "the last image of the viewport and the preview render): more is sharper and slower")
+        "the last image of the viewport and the preview render): more is sharper and slower",
+    )
     surface: PointerProperty(name="Surface", type=bpy.types.Object, description="Extracted mesh of this NeRF")
     cage: PointerProperty(name="Cage", type=bpy.types.Object, description="Tetrahedral cage of this NeRF")
-    threshold: FloatProperty(name="Density Threshold", default=10.0, min=0.0, description="Density at the extracted surface")
-    resolution: IntProperty(name="Resolution", default=256, min=16, max=1024, description="Grid cells per axis for extraction")
+    threshold: FloatProperty(
+        name="Density Threshold", default=10.0, min=0.0, description="Density at the extracted surface"
+    )
+    resolution: IntProperty(
+        name="Resolution", default=256, min=16, max=1024, description="Grid cells per axis for extraction"
+    )
     min_volume: FloatProperty(
         name="Min Component Volume",
         default=0.0,
@@ -109,32 +142,53 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
     # unregister) and that of 4.5 LTS hang there while it is registered (test_extension). Only the
     # add-on sets this pointer (Add Edit Region: a cube Empty); no panel offers it as a picker.
     edit_region: PointerProperty(
-        name="Edit Region", type=bpy.types.Object,
+        name="Edit Region",
+        type=bpy.types.Object,
         description="The edit region added last (a NeRF's regions are all the REGION Empties of it; none: the whole box)",
     )
     pick_object: BoolProperty(
-        name="Pick at 3D Cursor", default=False,
+        name="Pick at 3D Cursor",
+        default=False,
         description="Extract only the part of the NeRF connected to the 3D cursor (put the cursor on the object)",
     )
     pin_cut: BoolProperty(
-        name="Pin Cut", default=True,
+        name="Pin Cut",
+        default=True,
         description="The cage is pinned where the edit region cut the scene, so the object stays attached; "
-                    "off lets the cut move with the rest",
+        "off lets the cut move with the rest",
     )
 
     volume_folder: StringProperty(
-        name="Volume Folder", subtype="DIR_PATH", default="//nerf_volume/", options=_BLEND_RELATIVE_PATH,
-        description="Where Bake Volume writes its .vdb files (// is the .blend's folder)")
-    volume_resolution: IntProperty(name="Volume Resolution", default=256, min=1, max=2048, soft_min=16, soft_max=512,
-                                   description="Voxels along the longest side of the baked box")
+        name="Volume Folder",
+        subtype="DIR_PATH",
+        default="//nerf_volume/",
+        options=_BLEND_RELATIVE_PATH,
+        description="Where Bake Volume writes its .vdb files (// is the .blend's folder)",
+    )
+    volume_resolution: IntProperty(
+        name="Volume Resolution",
+        default=256,
+        min=1,
+        max=2048,
+        soft_min=16,
+        soft_max=512,
+        description="Voxels along the longest side of the baked box",
+    )
     volume_extent: EnumProperty(name="Volume Box", items=VOLUME_EXTENTS, default="NERF")
     volume_frames: EnumProperty(name="Volume Frames", items=VOLUME_FRAMES, default="CURRENT")
     volume_shading: EnumProperty(name="Volume Material", items=VOLUME_SHADINGS, default="EMISSION")
 
     # On handles and edit regions.
-    nerf: PointerProperty(name="NeRF", type=bpy.types.Object, description="The NeRF this handle deforms or this region limits")
+    nerf: PointerProperty(
+        name="NeRF", type=bpy.types.Object, description="The NeRF this handle deforms or this region limits"
+    )
     region: StringProperty(name="Region", description="Vertex group of the surface mesh this handle moves")
-    rest_matrix: FloatVectorProperty(name="Rest Matrix", size=16, default=IDENTITY, description="Handle's matrix in the NeRF's frame when made (row-major)")
+    rest_matrix: FloatVectorProperty(
+        name="Rest Matrix",
+        size=16,
+        default=IDENTITY,
+        description="Handle's matrix in the NeRF's frame when made (row-major)",
+    )
 
 
 def settings(obj: bpy.types.Object) -> NERFDEFORM_ObjectSettings:
@@ -181,8 +235,14 @@ def to_nerf_frame(nerf: bpy.types.Object, matrix_world=None):
         ) from None
 
 
-RAY_VISIBILITY = ("visible_camera", "visible_diffuse", "visible_glossy", "visible_transmission",
-                  "visible_volume_scatter", "visible_shadow")
+RAY_VISIBILITY = (
+    "visible_camera",
+    "visible_diffuse",
+    "visible_glossy",
+    "visible_transmission",
+    "visible_volume_scatter",
+    "visible_shadow",
+)
 
 
 def keep_out_of_renders(obj: bpy.types.Object) -> None:
@@ -238,8 +298,11 @@ def handles_of(nerf: bpy.types.Object, *, with_regions: bool = True) -> list[bpy
     if with_regions and alive(nerf.nerf_deform.surface) is None:
         return []
     return sorted(
-        (o for o in bpy.data.objects
-         if o.nerf_deform.role == "HANDLE" and o.nerf_deform.nerf == nerf and not is_deleted(o)),
+        (
+            o
+            for o in bpy.data.objects
+            if o.nerf_deform.role == "HANDLE" and o.nerf_deform.nerf == nerf and not is_deleted(o)
+        ),
         key=lambda o: o.name,
     )
 
@@ -277,8 +340,13 @@ def _forget_deleted(*_args):
 
 def _handlers():
     h = bpy.app.handlers
-    return ((h.depsgraph_update_post, _forget_deleted_on_depsgraph_update), (h.load_post, _forget_deleted),
-            (h.undo_post, _forget_deleted), (h.redo_post, _forget_deleted), (h.save_pre, _forget_deleted))
+    return (
+        (h.depsgraph_update_post, _forget_deleted_on_depsgraph_update),
+        (h.load_post, _forget_deleted),
+        (h.undo_post, _forget_deleted),
+        (h.redo_post, _forget_deleted),
+        (h.save_pre, _forget_deleted),
+    )
 
 
 def add_app_handlers(pairs) -> None:

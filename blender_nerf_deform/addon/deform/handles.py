@@ -9,16 +9,26 @@ matrix in the NeRF's frame times the inverse of its rest matrix.
 
 from __future__ import annotations
 
-import bpy  # first: bmesh is importable only once bpy is loaded (the bpy module from PyPI)
 import bmesh  # noqa: I001
+import bpy  # first: bmesh is importable only once bpy is loaded (the bpy module from PyPI)
 import numpy as np
 from bpy.app.handlers import persistent
 from mathutils import Matrix
 
 from ..data.cage_store import separate_regions
 from ..data.mesh_attributes import part_labels
-from ..data.properties import (OnNeRF, PIN_GROUP, PlacementError, add_app_handlers, alive, handles_of, owning_nerf,
-                               remove_app_handlers, select_only, to_nerf_frame)
+from ..data.properties import (
+    PIN_GROUP,
+    OnNeRF,
+    PlacementError,
+    add_app_handlers,
+    alive,
+    handles_of,
+    owning_nerf,
+    remove_app_handlers,
+    select_only,
+    to_nerf_frame,
+)
 
 
 def selected_vertices(surface: bpy.types.Object) -> np.ndarray:
@@ -38,7 +48,8 @@ def group_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     gi = group.index
     return np.array(
-        [v.index for v in surface.data.vertices if any(g.group == gi and g.weight > 0 for g in v.groups)], dtype=np.int64
+        [v.index for v in surface.data.vertices if any(g.group == gi and g.weight > 0 for g in v.groups)],
+        dtype=np.int64,
     )
 
 
@@ -60,7 +71,12 @@ def region_vertices(surface: bpy.types.Object, group_name: str) -> np.ndarray:
         _region_cache.clear()
         return group_vertices(surface, group_name)
     # The groups' names too: a group renamed (its list in the UI, a script) is not this region any more.
-    key = (surface.data.session_uid, group_name, len(surface.data.vertices), tuple(g.name for g in surface.vertex_groups))
+    key = (
+        surface.data.session_uid,
+        group_name,
+        len(surface.data.vertices),
+        tuple(g.name for g in surface.vertex_groups),
+    )
     if key not in _region_cache:
         _region_cache[key] = group_vertices(surface, group_name)
     return _region_cache[key]
@@ -80,8 +96,12 @@ def _forget_regions(*_args):
 
 def _handlers():
     h = bpy.app.handlers
-    return ((h.depsgraph_update_post, _forget_regions_in_group_editing_modes), (h.load_post, _forget_regions),
-            (h.undo_post, _forget_regions), (h.redo_post, _forget_regions))
+    return (
+        (h.depsgraph_update_post, _forget_regions_in_group_editing_modes),
+        (h.load_post, _forget_regions),
+        (h.undo_post, _forget_regions),
+        (h.redo_post, _forget_regions),
+    )
 
 
 def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=None, to_nerf=None) -> np.ndarray:
@@ -96,15 +116,23 @@ def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=No
         handle = handle.evaluated_get(depsgraph)
     if to_nerf is None:
         to_nerf = to_nerf_frame(nerf, (nerf.evaluated_get(depsgraph) if depsgraph is not None else nerf).matrix_world)
-    if not np.isfinite(rest).all() or abs(np.linalg.det(rest[:3, :3])) < 1e-12 or not np.allclose(rest[3], [0, 0, 0, 1]):
-        raise PlacementError(f"handle '{handle.name}': its rest matrix (stored when it was made) is damaged "
-                             f"({'not invertible' if np.isfinite(rest).all() else 'not finite'}: "
-                             f"{np.round(rest, 6).tolist()}); remove the handle and add it again")
+    if (
+        not np.isfinite(rest).all()
+        or abs(np.linalg.det(rest[:3, :3])) < 1e-12
+        or not np.allclose(rest[3], [0, 0, 0, 1])
+    ):
+        raise PlacementError(
+            f"handle '{handle.name}': its rest matrix (stored when it was made) is damaged "
+            f"({'not invertible' if np.isfinite(rest).all() else 'not finite'}: "
+            f"{np.round(rest, 6).tolist()}); remove the handle and add it again"
+        )
     world = np.array(handle.matrix_world)
     if not np.isfinite(world).all():
         location = ", ".join(f"{x:g}" for x in world[:3, 3])
-        raise PlacementError(f"handle '{handle.name}' has a non-finite transform (location {location}): give it a "
-                             "finite location, rotation and scale (its keyframes, drivers or constraints too)")
+        raise PlacementError(
+            f"handle '{handle.name}' has a non-finite transform (location {location}): give it a "
+            "finite location, rotation and scale (its keyframes, drivers or constraints too)"
+        )
     return np.array(to_nerf @ handle.matrix_world @ Matrix(rest.tolist()).inverted_safe())
 
 
@@ -117,7 +145,9 @@ def _surface_of(context) -> tuple[bpy.types.Object | None, bpy.types.Object | No
     return (obj, nerf) if nerf is not None and nerf.nerf_deform.surface == obj else (obj, None)
 
 
-def _overlaps(surface: bpy.types.Object, nerf: bpy.types.Object, vertices: np.ndarray, skip_group: str = "") -> str | None:
+def _overlaps(
+    surface: bpy.types.Object, nerf: bpy.types.Object, vertices: np.ndarray, skip_group: str = ""
+) -> str | None:
     """Name of a region (handle or pin) that already owns some of `vertices`, if any."""
     regions = [(h.name, h.nerf_deform.region) for h in handles_of(nerf)] + [("the pinned region", PIN_GROUP)]
     for owner, group in regions:
@@ -175,7 +205,10 @@ class _SelectionOperator:
         surface, nerf = _surface_of(context)
         vertices = selected_vertices(surface)
         if len(vertices) == 0:
-            self.report({"ERROR"}, f"No vertices selected: select the region to {self._purpose} on the extracted mesh in Edit Mode")
+            self.report(
+                {"ERROR"},
+                f"No vertices selected: select the region to {self._purpose} on the extracted mesh in Edit Mode",
+            )
             return None
         return surface, nerf, vertices
 
@@ -192,7 +225,9 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
             return {"CANCELLED"}
         surface, nerf, vertices = selection
         if (other := _overlaps(surface, nerf, vertices)) is not None:
-            self.report({"ERROR"}, f"The selection overlaps {other}: deselect those vertices or remove that region first")
+            self.report(
+                {"ERROR"}, f"The selection overlaps {other}: deselect those vertices or remove that region first"
+            )
             return {"CANCELLED"}
 
         co = np.empty(3 * len(surface.data.vertices), dtype=np.float32)
@@ -228,8 +263,11 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
         part = part_labels(surface.data)
         spanned = np.unique(part[vertices]) if part is not None else np.zeros(0)
         if len(spanned) > 1:
-            self.report({"WARNING"}, f"{handle.name}'s vertices span the objects of {len(spanned)} edit regions "
-                                     f"(parts {', '.join(str(int(i) + 1) for i in spanned)}): it moves each of them")
+            self.report(
+                {"WARNING"},
+                f"{handle.name}'s vertices span the objects of {len(spanned)} edit regions "
+                f"(parts {', '.join(str(int(i) + 1) for i in spanned)}): it moves each of them",
+            )
         _separate(self, nerf)
         return {"FINISHED"}
 
@@ -304,7 +342,12 @@ class NERFDEFORM_OT_reset_pose(OnNeRF, bpy.types.Operator):
         return {"FINISHED"}
 
 
-_classes = (NERFDEFORM_OT_add_handle, NERFDEFORM_OT_pin_selection, NERFDEFORM_OT_remove_handle, NERFDEFORM_OT_reset_pose)
+_classes = (
+    NERFDEFORM_OT_add_handle,
+    NERFDEFORM_OT_pin_selection,
+    NERFDEFORM_OT_remove_handle,
+    NERFDEFORM_OT_reset_pose,
+)
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
 
 

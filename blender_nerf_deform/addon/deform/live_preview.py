@@ -179,8 +179,13 @@ def _on_render_end(*_args):
 
 def _handlers():
     h = bpy.app.handlers
-    return ((h.depsgraph_update_post, _on_depsgraph_update), (h.frame_change_post, _on_frame_change),
-            (h.render_init, _on_render_init), (h.render_complete, _on_render_end), (h.render_cancel, _on_render_end))
+    return (
+        (h.depsgraph_update_post, _on_depsgraph_update),
+        (h.frame_change_post, _on_frame_change),
+        (h.render_init, _on_render_init),
+        (h.render_complete, _on_render_end),
+        (h.render_cancel, _on_render_end),
+    )
 
 
 def register():

@@ -7,11 +7,18 @@ rendered, and the worker's solve depends on nothing else.
 
 from __future__ import annotations
 
-import bpy
 import numpy as np
 
 from ...engine.service.protocol import content_key
-from ..data.cage_store import CageDataError, cage_pins, deformed_cage_in_nerf_frame, has_cage, load_cage, shared_cage, shared_embedding
+from ..data.cage_store import (
+    CageDataError,
+    cage_pins,
+    deformed_cage_in_nerf_frame,
+    has_cage,
+    load_cage,
+    shared_cage,
+    shared_embedding,
+)
 from ..data.properties import PIN_GROUP, PlacementError, handles_of
 from .handles import handle_target, region_vertices
 
@@ -30,9 +37,11 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
     if not handles or surface is None or s.cage is None:
         return None
     if surface.type != "MESH":  # a script set it: the handles' vertex groups are on no mesh
-        raise CageDataError(f"NeRF object '{nerf.name}': its extracted mesh is set to '{surface.name}', "
-                            f"{'an' if surface.type[0] in 'AEIOU' else 'a'} {surface.type.lower()}, not a mesh; set it back to the mesh (or Extract Mesh and "
-                            "Build Cage again)")
+        raise CageDataError(
+            f"NeRF object '{nerf.name}': its extracted mesh is set to '{surface.name}', "
+            f"{'an' if surface.type[0] in 'AEIOU' else 'a'} {surface.type.lower()}, not a mesh; set it back to the mesh (or Extract Mesh and "
+            "Build Cage again)"
+        )
     regions = [region_vertices(surface, h.nerf_deform.region) for h in handles]
     for handle, region in zip(handles, regions):
         if not len(region):
@@ -41,8 +50,10 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
                 why = f"names vertex group '{h_name}', which '{surface.name}' does not have (renamed or deleted?)"
             else:
                 why = f"has no vertices: its vertex group '{group}' of '{surface.name}' is empty"
-            raise PlacementError(f"handle '{handle.name}' {why}: name the group back, or remove the handle and add it "
-                                 "again on a selection")
+            raise PlacementError(
+                f"handle '{handle.name}' {why}: name the group back, or remove the handle and add it "
+                "again on a selection"
+            )
     region_arrays = {
         "handle_index": np.concatenate(regions) if regions else np.zeros(0, np.int64),
         "handle_counts": np.array([len(r) for r in regions], dtype=np.int64),
@@ -76,8 +87,10 @@ def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict, dict]:
     if s.cage is None:
         return {"kind": "rest"}, {}, {}
     if s.cage.type != "MESH" or not has_cage(s.cage.data):  # set by a script, or its mesh swapped: not a render at rest
-        raise CageDataError(f"NeRF object '{nerf.name}': its cage is set to '{s.cage.name}', which holds no NeRF cage "
-                            "(not one Build Cage made); select the NeRF and run Build Cage again")
+        raise CageDataError(
+            f"NeRF object '{nerf.name}': its cage is set to '{s.cage.name}', which holds no NeRF cage "
+            "(not one Build Cage made); select the NeRF and run Build Cage again"
+        )
     if s.deformation_mode == "MODIFIERS":
         deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph, to_nerf)
         return {"kind": "cage"}, {"deformed_vertices": deformed}, {"cage": shared_cage(s.cage.data)}
@@ -119,7 +132,9 @@ class AsyncSolver:
             self.waiting = (pose, shared)  # only the newest pose matters
             return
         self.in_flight = True
-        self.client.submit("solve", {**pose, "answer": "surface"}, shared=shared, on_done=self._done, on_error=self._failed)
+        self.client.submit(
+            "solve", {**pose, "answer": "surface"}, shared=shared, on_done=self._done, on_error=self._failed
+        )
 
     def _next(self) -> None:
         self.in_flight = False

@@ -13,8 +13,17 @@ import numpy as np
 from ..data.cage_store import cage_vertex_parts, separate_regions, store_cage, store_cut_pins, store_embedding
 from ..data.mesh_attributes import cut_flags, part_labels, set_part_labels
 from ..data.paths import checkpoint_path
-from ..data.properties import (PREVIEW_KEY, OnNeRF, add_app_handlers, alive, alive_object, forget_deleted,
-                               keep_out_of_renders, owning_nerf, remove_app_handlers)
+from ..data.properties import (
+    PREVIEW_KEY,
+    OnNeRF,
+    add_app_handlers,
+    alive,
+    alive_object,
+    forget_deleted,
+    keep_out_of_renders,
+    owning_nerf,
+    remove_app_handlers,
+)
 from ..worker.jobs import WorkerOperator
 from .regions import edit_regions_of, extracted_regions, same_regions
 
@@ -46,7 +55,9 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
     refine_edge: bpy.props.FloatProperty(
         name="Refine Edge",
         description="Longest tet edge around the selection (0: half the cage's typical edge)",
-        default=0.0, min=0.0, subtype="DISTANCE",
+        default=0.0,
+        min=0.0,
+        subtype="DISTANCE",
     )
 
     def request(self, context):
@@ -74,8 +85,10 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
             selected = np.zeros(len(surface.data.vertices), dtype=bool)
             surface.data.vertices.foreach_get("select", selected)
             if not selected.any():
-                raise ValueError(f"Refine Selected: no vertex of {surface.name} is selected; select the part that "
-                                 "will stretch in Edit Mode, or turn Refine Selected off")
+                raise ValueError(
+                    f"Refine Selected: no vertex of {surface.name} is selected; select the part that "
+                    "will stretch in Edit Mode, or turn Refine Selected off"
+                )
             arrays["refine"] = selected.astype(np.uint8)
         self._note = ""
         context.view_layer.update()
@@ -85,9 +98,11 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
         except ValueError:  # a region has no box now
             changed = True
         if changed:
-            self._note = (f"the edit regions changed since {surface.name} was extracted (it was extracted in "
-                          f"{len(extracted) or 'no'} region{'' if len(extracted) == 1 else 's'}): the cage wraps the mesh "
-                          "as extracted (delete the cage and handles, and Extract Mesh again, to use the regions now)")
+            self._note = (
+                f"the edit regions changed since {surface.name} was extracted (it was extracted in "
+                f"{len(extracted) or 'no'} region{'' if len(extracted) == 1 else 's'}): the cage wraps the mesh "
+                "as extracted (delete the cage and handles, and Extract Mesh again, to use the regions now)"
+            )
         # With the checkpoint and the extraction threshold the worker widens the margin where the
         # NeRF's density is still soft, as the `cage` command does (one stage function for both).
         # (A NeRF object without a checkpoint, made by a script, gets the cage at the plain margin.)
@@ -104,8 +119,12 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
         # been deleted or edited since the request.
         surface = alive(nerf.nerf_deform.surface) if alive_object(nerf) else None
         if surface is None or len(surface.data.vertices) != len(arrays["tet_ids"]):
-            return self._fail(ValueError("the NeRF or its extracted mesh was deleted or edited while the cage was built: "
-                                         "run Build Cage again"))
+            return self._fail(
+                ValueError(
+                    "the NeRF or its extracted mesh was deleted or edited while the cage was built: "
+                    "run Build Cage again"
+                )
+            )
         s = nerf.nerf_deform
         cage = alive(s.cage)
         if cage is None:
@@ -136,15 +155,25 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
         )
         if result.get("refined"):
             r = result["refined"]
-            self.report({"INFO"}, f"{cage.name}: refined around the selection to edges of {r['edge']:.3g} "
-                                  f"({r['tets_before']} -> {result['n_tets']} tets)")
+            self.report(
+                {"INFO"},
+                f"{cage.name}: refined around the selection to edges of {r['edge']:.3g} "
+                f"({r['tets_before']} -> {result['n_tets']} tets)",
+            )
         n_cut, n_pinned = result.get("n_cut", 0), result.get("n_pinned", 0)
         if n_pinned and cage_part is not None and len(np.unique(cage_part)) > 1:
-            per_part = ", ".join(f"{int(np.count_nonzero(cage_part[pins] == i))} in part {i + 1}" for i in np.unique(cage_part))
-            self.report({"INFO"}, f"{cage.name}: one cage per edit region ({len(np.unique(cage_part))}); {n_pinned} cage "
-                                  f"vertices pinned at the cuts ({per_part}; {n_cut} cut mesh vertices)")
+            per_part = ", ".join(
+                f"{int(np.count_nonzero(cage_part[pins] == i))} in part {i + 1}" for i in np.unique(cage_part)
+            )
+            self.report(
+                {"INFO"},
+                f"{cage.name}: one cage per edit region ({len(np.unique(cage_part))}); {n_pinned} cage "
+                f"vertices pinned at the cuts ({per_part}; {n_cut} cut mesh vertices)",
+            )
         elif n_pinned:
-            self.report({"INFO"}, f"{cage.name}: {n_pinned} cage vertices pinned at the cut ({n_cut} cut mesh vertices)")
+            self.report(
+                {"INFO"}, f"{cage.name}: {n_pinned} cage vertices pinned at the cut ({n_cut} cut mesh vertices)"
+            )
         elif n_cut and not s.pin_cut:
             self.report({"INFO"}, f"{cage.name}: Pin Cut is off: the cut ({n_cut} mesh vertices) moves with the cage")
         if self._note:

@@ -14,20 +14,39 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from ..data.cage_store import (EMBED_CONTENT_KEY, EMBED_COUNT_KEY, EMBED_TET_KEY, EMBED_WEIGHTS_KEY, repair_selection_attributes,
-                         set_triangles)
+from ..data.cage_store import (
+    EMBED_CONTENT_KEY,
+    EMBED_COUNT_KEY,
+    EMBED_TET_KEY,
+    EMBED_WEIGHTS_KEY,
+    repair_selection_attributes,
+    set_triangles,
+)
 from ..data.images import srgb_to_linear
 from ..data.mesh_attributes import set_cut_flags, set_part_labels
 from ..data.paths import checkpoint_path
-from ..data.properties import (OnNeRF, add_app_handlers, alive, alive_object, forget_deleted, handles_of, owning_nerf,
-                               remove_app_handlers, to_nerf_frame)
+from ..data.properties import (
+    OnNeRF,
+    add_app_handlers,
+    alive,
+    alive_object,
+    forget_deleted,
+    handles_of,
+    owning_nerf,
+    remove_app_handlers,
+    to_nerf_frame,
+)
 from ..worker.jobs import WorkerOperator
 from .regions import SURFACE_REGION_KEY, edit_regions_of, encode_regions, regions_of
 
 COLOR_ATTRIBUTE = "NeRF Color"
+
+
 def fill_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
     set_triangles(mesh, vertices, faces)
-    attribute = mesh.color_attributes.get(COLOR_ATTRIBUTE) or mesh.color_attributes.new(COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+    attribute = mesh.color_attributes.get(COLOR_ATTRIBUTE) or mesh.color_attributes.new(
+        COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT"
+    )
     # The NeRF's colours are display (sRGB) values; colour attributes hold scene-linear ones.
     linear = srgb_to_linear(np.clip(colors, 0.0, 1.0))
     attribute.data.foreach_set("color", np.c_[linear, np.ones(len(linear))].astype(np.float32).ravel())
@@ -67,7 +86,12 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, OnNeRF, bpy.types.Operator):
         regions = edit_regions_of(nerf)  # ValueError naming a region without a box
         self._nerf, self._regions = nerf, regions
         self._region_names = [r.name for r in regions_of(nerf)]
-        params = {"checkpoint": checkpoint_path(nerf), "threshold": s.threshold, "resolution": s.resolution, "min_volume": s.min_volume}
+        params = {
+            "checkpoint": checkpoint_path(nerf),
+            "threshold": s.threshold,
+            "resolution": s.resolution,
+            "min_volume": s.min_volume,
+        }
         if regions:
             params["regions"] = regions
         if s.pick_object:
@@ -89,7 +113,9 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, OnNeRF, bpy.types.Operator):
         s = nerf.nerf_deform
         surface = alive(s.surface)
         if surface is not None and surface.mode == "EDIT":
-            return self._fail(ValueError(f"{surface.name} went into Edit Mode while it was extracted: run Extract Mesh again"))
+            return self._fail(
+                ValueError(f"{surface.name} went into Edit Mode while it was extracted: run Extract Mesh again")
+            )
         if surface is not None:
             forget_cage_data(surface)
         if surface is None:

@@ -29,7 +29,9 @@ class NERFDEFORM_OT_place_cursor_on_nerf(OnNeRF, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     origin: FloatVectorProperty(name="Ray Origin", size=3, description="World-space start of the ray (scripts)")
-    direction: FloatVectorProperty(name="Ray Direction", size=3, description="World-space direction of the ray (scripts)")
+    direction: FloatVectorProperty(
+        name="Ray Direction", size=3, description="World-space direction of the ray (scripts)"
+    )
 
     def execute(self, context):
         nerf = owning_nerf(context.active_object)
@@ -40,18 +42,27 @@ class NERFDEFORM_OT_place_cursor_on_nerf(OnNeRF, bpy.types.Operator):
             return {"CANCELLED"}
 
     def _place(self, context, nerf, origin_world: np.ndarray, direction_world: np.ndarray):
-        if not np.isfinite(origin_world).all() or not np.isfinite(direction_world).all() or \
-                np.linalg.norm(direction_world) < 1e-12:
+        if (
+            not np.isfinite(origin_world).all()
+            or not np.isfinite(direction_world).all()
+            or np.linalg.norm(direction_world) < 1e-12
+        ):
             raise ValueError("the ray needs a finite origin and a non-zero direction")
         to_nerf = to_nerf_frame(nerf)
         origin = to_nerf @ Vector(origin_world.tolist())
         direction = to_nerf.to_3x3() @ Vector(direction_world.tolist())
-        params = {"checkpoint": checkpoint_path(nerf), "origin": list(origin), "direction": list(direction),
-                  "threshold": float(nerf.nerf_deform.threshold)}
+        params = {
+            "checkpoint": checkpoint_path(nerf),
+            "origin": list(origin),
+            "direction": list(direction),
+            "threshold": float(nerf.nerf_deform.threshold),
+        }
         result, _ = worker(context).call("first_surface", params)
         if not result["hit"]:
-            raise ValueError(f"the ray meets no density above the threshold {result['threshold']:g} in "
-                             f"{nerf.name}'s box (the largest on it is {result['max_density']:.3g}): click on the object")
+            raise ValueError(
+                f"the ray meets no density above the threshold {result['threshold']:g} in "
+                f"{nerf.name}'s box (the largest on it is {result['max_density']:.3g}): click on the object"
+            )
         point = nerf.matrix_world @ Vector(result["point"])
         context.scene.cursor.location = point
         self.report({"INFO"}, f"3D cursor on {nerf.name} at ({point.x:.3g}, {point.y:.3g}, {point.z:.3g})")

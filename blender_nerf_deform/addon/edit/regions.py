@@ -80,15 +80,21 @@ def region_dict(region: bpy.types.Object, nerf: bpy.types.Object) -> dict:
             "a non-uniform scale on a rotated parent); parent it to the NeRF object alone"
         )
     euler = Matrix(rotation.tolist()).to_euler("XYZ")
-    return {"center": [float(x) for x in center], "size": [float(x) for x in size],
-            "rotation_euler": [float(x) for x in euler]}
+    return {
+        "center": [float(x) for x in center],
+        "size": [float(x) for x in size],
+        "rotation_euler": [float(x) for x in euler],
+    }
 
 
 def regions_of(nerf: bpy.types.Object) -> list[bpy.types.Object]:
     """The NeRF's live edit regions in a stable order (by name): every REGION Empty whose `nerf`
     is this NeRF, and the one its `edit_region` pointer names (all a single-region file set)."""
-    found = {o.name: o for o in bpy.data.objects
-             if o.nerf_deform.role == "REGION" and o.nerf_deform.nerf == nerf and alive(o) is not None}
+    found = {
+        o.name: o
+        for o in bpy.data.objects
+        if o.nerf_deform.role == "REGION" and o.nerf_deform.nerf == nerf and alive(o) is not None
+    }
     if (pointed := alive(nerf.nerf_deform.edit_region)) is not None:
         found[pointed.name] = pointed
     return [found[name] for name in sorted(found)]
@@ -140,7 +146,9 @@ def _overlaps(a: dict, b: dict) -> bool:
     return region_from_dict(a).overlaps(region_from_dict(b))
 
 
-def default_placement(nerf: bpy.types.Object, cursor_world, others: list[dict] = ()) -> tuple[np.ndarray, np.ndarray, str]:
+def default_placement(
+    nerf: bpy.types.Object, cursor_world, others: list[dict] = ()
+) -> tuple[np.ndarray, np.ndarray, str]:
     """(centre, size, where) of a new region in the NeRF's frame: around the 3D cursor, a third of
     the box, when the cursor is in the box; else the whole box, or (when the NeRF has regions
     already, which the whole box would overlap) a third of it at its centre."""
@@ -196,12 +204,17 @@ class NERFDEFORM_OT_add_edit_region(OnNeRF, bpy.types.Operator):
         select_only(context, region)  # ready for its gizmos
         n = len(regions_of(nerf))
         count = f" ({nerf.name} has {n} edit regions: one cage each)" if n > 1 else ""
-        self.report({"INFO"}, f"{region.name} {where}{count}: move, rotate and scale it around the object, then Extract Mesh")
+        self.report(
+            {"INFO"}, f"{region.name} {where}{count}: move, rotate and scale it around the object, then Extract Mesh"
+        )
         mine = {"center": center.tolist(), "size": size.tolist(), "rotation_euler": [0.0, 0.0, 0.0]}
         overlapped = [name for name, d in others if _overlaps(mine, d)]
         if overlapped:
-            self.report({"WARNING"}, f"{region.name} overlaps {', '.join(overlapped)}: regions must not overlap, "
-                                     "move it apart before Extract Mesh")
+            self.report(
+                {"WARNING"},
+                f"{region.name} overlaps {', '.join(overlapped)}: regions must not overlap, "
+                "move it apart before Extract Mesh",
+            )
         return {"FINISHED"}
 
 
@@ -220,7 +233,9 @@ class NERFDEFORM_OT_select_edit_region(bpy.types.Operator):
             self.report({"ERROR"}, f"{self.bl_label}: no edit region named '{self.name}'")
             return {"CANCELLED"}
         if context.view_layer.objects.get(region.name) != region:
-            self.report({"ERROR"}, f"{self.bl_label}: {region.name} is not in this view layer (an excluded collection?)")
+            self.report(
+                {"ERROR"}, f"{self.bl_label}: {region.name} is not in this view layer (an excluded collection?)"
+            )
             return {"CANCELLED"}
         select_only(context, region)
         return {"FINISHED"}

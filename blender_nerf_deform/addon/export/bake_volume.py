@@ -81,29 +81,47 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     directory: bpy.props.StringProperty(
-        name="Folder", subtype="DIR_PATH", default="//nerf_volume/",
-        description="Where the .vdb files go (// is the .blend's folder); one file per frame, <NeRF>_<frame>.vdb")
+        name="Folder",
+        subtype="DIR_PATH",
+        default="//nerf_volume/",
+        description="Where the .vdb files go (// is the .blend's folder); one file per frame, <NeRF>_<frame>.vdb",
+    )
     resolution: bpy.props.IntProperty(
-        name="Resolution", default=256, soft_min=16, soft_max=512,
-        description="Voxels along the longest side of the baked box (cubic voxels)")
+        name="Resolution",
+        default=256,
+        soft_min=16,
+        soft_max=512,
+        description="Voxels along the longest side of the baked box (cubic voxels)",
+    )
     extent: bpy.props.EnumProperty(name="Box", items=VOLUME_EXTENTS, default="NERF")
-    region: bpy.props.StringProperty(name="Region", default="", description="The edit region to bake (Box: Edit Region)")
+    region: bpy.props.StringProperty(
+        name="Region", default="", description="The edit region to bake (Box: Edit Region)"
+    )
     frames: bpy.props.EnumProperty(name="Frames", items=VOLUME_FRAMES, default="CURRENT")
-    frame_start: bpy.props.IntProperty(name="Start", default=1,
-                                       description="First frame of the range (Frames: Frame Range); default the scene's")
-    frame_end: bpy.props.IntProperty(name="End", default=250,
-                                     description="Last frame of the range (Frames: Frame Range); default the scene's")
+    frame_start: bpy.props.IntProperty(
+        name="Start", default=1, description="First frame of the range (Frames: Frame Range); default the scene's"
+    )
+    frame_end: bpy.props.IntProperty(
+        name="End", default=250, description="Last frame of the range (Frames: Frame Range); default the scene's"
+    )
     shading: bpy.props.EnumProperty(name="Material", items=VOLUME_SHADINGS, default="EMISSION")
-    supersample: bpy.props.IntProperty(name="Supersample", default=1, min=1, max=4,
-                                       description="Points averaged per voxel along each axis (1: its centre)")
+    supersample: bpy.props.IntProperty(
+        name="Supersample",
+        default=1,
+        min=1,
+        max=4,
+        description="Points averaged per voxel along each axis (1: its centre)",
+    )
 
     # The chain: one request per frame; apply stages the frame's file and asks for the next.
     def request(self, context):
         nerf = owning_nerf(context.active_object)
         self._nerf_name, self._nerf_uid = nerf.name, nerf.session_uid
         if not 1 <= self.resolution <= MAX_RESOLUTION:
-            raise ValueError(f"the resolution must be from 1 to {MAX_RESOLUTION} voxels along the box's longest side, "
-                             f"got {self.resolution}")
+            raise ValueError(
+                f"the resolution must be from 1 to {MAX_RESOLUTION} voxels along the box's longest side, "
+                f"got {self.resolution}"
+            )
         scene = context.scene
         if self.frames == "RANGE":
             # Unset (a script's call), the range is the scene's, as the Frame Range panel shows it.
@@ -121,18 +139,23 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         last = scene.bl_rna.properties["frame_current"].hard_max
         for frame in (self._frames[0], self._frames[-1]):
             if frame < 0:
-                raise ValueError(f"frame {frame} cannot be baked: Blender reads no negative frame number in a volume "
-                                 f"sequence (its file would play at frame {-frame}); bake frames from 0 to {last}")
+                raise ValueError(
+                    f"frame {frame} cannot be baked: Blender reads no negative frame number in a volume "
+                    f"sequence (its file would play at frame {-frame}); bake frames from 0 to {last}"
+                )
             if frame > last:
-                raise ValueError(f"frame {frame} cannot be baked: Blender's frames end at {last}; bake frames from 0 "
-                                 f"to {last}")
+                raise ValueError(
+                    f"frame {frame} cannot be baked: Blender's frames end at {last}; bake frames from 0 to {last}"
+                )
         self._region = self._chosen_region(nerf) if self.extent == "REGION" else None
         if not self.directory or (self.directory.startswith("//") and not bpy.data.filepath):
             raise ValueError("save the .blend first, or give the bake an absolute folder: // is the .blend's folder")
         if not self.directory.startswith("//") and not os.path.isabs(os.path.expanduser(self.directory)):
             # Relative to Blender's working directory, which the artist neither sees nor chose.
-            raise ValueError(f"the folder {self.directory!r} is relative: start it with // for the .blend's folder "
-                             "(//" + self.directory.lstrip("./") + "), or give an absolute folder")
+            raise ValueError(
+                f"the folder {self.directory!r} is relative: start it with // for the .blend's folder "
+                "(//" + self.directory.lstrip("./") + "), or give an absolute folder"
+            )
         self._out = Path(os.path.expanduser(bpy.path.abspath(self.directory)))
         self._check_memory()
         openvdb_module()  # no OpenVDB: say so before any work
@@ -169,8 +192,10 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
             return obj
         renamed = next((o for o in bpy.data.objects if o.session_uid == self._nerf_uid and not is_deleted(o)), None)
         if renamed is not None:
-            raise ValueError(f"NeRF object '{self._nerf_name}' was renamed to '{renamed.name}' while it was baked; "
-                             "nothing was written: bake it again")
+            raise ValueError(
+                f"NeRF object '{self._nerf_name}' was renamed to '{renamed.name}' while it was baked; "
+                "nothing was written: bake it again"
+            )
         raise ValueError(f"NeRF object '{self._nerf_name}' was deleted while it was baked; nothing was written")
 
     def _chosen_region(self, nerf) -> dict:
@@ -180,15 +205,19 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         if self.region:
             named = [r for r in regions if r.name == self.region]
             if not named:
-                raise ValueError(f"{self.region!r} is not an edit region of {nerf.name} "
-                                 f"(its regions: {', '.join(r.name for r in regions)})")
+                raise ValueError(
+                    f"{self.region!r} is not an edit region of {nerf.name} "
+                    f"(its regions: {', '.join(r.name for r in regions)})"
+                )
             return region_dict(named[0], nerf)
         active = bpy.context.active_object
         if len(regions) > 1 and active in regions:
             return region_dict(active, nerf)
         if len(regions) > 1:
-            raise ValueError(f"{nerf.name} has {len(regions)} edit regions ({', '.join(r.name for r in regions)}): "
-                             "select the one to bake, or name it (Region)")
+            raise ValueError(
+                f"{nerf.name} has {len(regions)} edit regions ({', '.join(r.name for r in regions)}): "
+                "select the one to bake, or name it (Region)"
+            )
         return region_dict(regions[0], nerf)
 
     def _check_memory(self) -> None:
@@ -198,9 +227,11 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         need = voxels * (28 + 16)
         free = available_memory()
         if free is not None and need > free:
-            raise ValueError(f"a {self.resolution}^3 volume needs about {gib(need)} of memory, but only {gib(free)} "
-                             "is available: bake it at a lower resolution, or over a smaller box (an edit region, "
-                             "or the posed cage)")
+            raise ValueError(
+                f"a {self.resolution}^3 volume needs about {gib(need)} of memory, but only {gib(free)} "
+                "is available: bake it at a lower resolution, or over a smaller box (an edit region, "
+                "or the posed cage)"
+            )
 
     def _frame_request(self, context) -> WorkerRequest:
         frame = self._frames[self._next]
@@ -220,7 +251,9 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         except ValueError as error:
             raise ValueError(f"frame {frame}: {error}") from None
         params = {**posed.params, "extent": extent, "resolution": self.resolution, "supersample": self.supersample}
-        stage = f"frame {frame} ({self._next + 1} of {len(self._frames)})" if len(self._frames) > 1 else f"frame {frame}"
+        stage = (
+            f"frame {frame} ({self._next + 1} of {len(self._frames)})" if len(self._frames) > 1 else f"frame {frame}"
+        )
         return WorkerRequest("bake_volume", params, posed.arrays, stage, posed.shared)
 
     def _rest_cage_box(self, nerf) -> dict:
@@ -229,19 +262,27 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
             raise ValueError(f"{nerf.name} has no cage: build one, or bake the NeRF's box or an edit region")
         vertices, _tets = load_cage(cage.data)
         lo, hi = vertices.min(0), vertices.max(0)
-        return {"center": [float(x) for x in 0.5 * (lo + hi)], "size": [float(x) for x in hi - lo],
-                "rotation_euler": [0.0, 0.0, 0.0]}
+        return {
+            "center": [float(x) for x in 0.5 * (lo + hi)],
+            "size": [float(x) for x in hi - lo],
+            "rotation_euler": [0.0, 0.0, 0.0],
+        }
 
     def apply(self, context, result, arrays):
         frame = self._frames[self._next]
         try:
             self._nerf()
             self._warnings.extend(render_warnings(self._nerf_name, frame, result))
-            write_vdb(self._staged.temporary(self._targets[frame]), result["shape"],
-                      np.asarray(result["index_to_nerf"], dtype=np.float64), arrays["index"],
-                      scaled_density(arrays["density"], self._scale, f"frame {frame}: NeRF object '{self._nerf_name}'"),
-                      srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)),
-                      where=f"frame {frame}", owner=self._nerf_name)
+            write_vdb(
+                self._staged.temporary(self._targets[frame]),
+                result["shape"],
+                np.asarray(result["index_to_nerf"], dtype=np.float64),
+                arrays["index"],
+                scaled_density(arrays["density"], self._scale, f"frame {frame}: NeRF object '{self._nerf_name}'"),
+                srgb_to_linear(np.clip(arrays["color"], 0.0, 1.0)),
+                where=f"frame {frame}",
+                owner=self._nerf_name,
+            )
         except (ValueError, EngineError) as error:  # VolumeFileError is a ValueError
             return self._fail(error)
         self._written.append(frame)
@@ -265,8 +306,10 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
         volume = volume_object(context, nerf, first, self._written, self.shading)
         for line in self._warnings:
             self.report({"WARNING"}, line)
-        self.report({"INFO"}, f"{volume.name}: baked {len(self._written)} frame{'s' if len(self._written) > 1 else ''} "
-                              f"to {self._out}")
+        self.report(
+            {"INFO"},
+            f"{volume.name}: baked {len(self._written)} frame{'s' if len(self._written) > 1 else ''} to {self._out}",
+        )
         return {"FINISHED"}
 
     def _fail(self, error: Exception) -> set[str]:

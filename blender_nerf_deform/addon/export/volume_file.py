@@ -64,12 +64,22 @@ def openvdb_module():
                 return __import__(name)
             except ImportError:
                 pass
-    raise VolumeFileError(f"this Blender ({bpy.app.version_string}) has no OpenVDB Python module to write volumes with "
-                          "(Blender's own builds ship one; some bpy module wheels do not)")
+    raise VolumeFileError(
+        f"this Blender ({bpy.app.version_string}) has no OpenVDB Python module to write volumes with "
+        "(Blender's own builds ship one; some bpy module wheels do not)"
+    )
 
 
-def write_vdb(path, shape, index_to_local: np.ndarray, index: np.ndarray, density: np.ndarray, color: np.ndarray,
-              where: str = "", owner: str | None = None) -> None:
+def write_vdb(
+    path,
+    shape,
+    index_to_local: np.ndarray,
+    index: np.ndarray,
+    density: np.ndarray,
+    color: np.ndarray,
+    where: str = "",
+    owner: str | None = None,
+) -> None:
     """Write `density` (N,) and `color` (N, 3) of the voxels `index` (N, 3) of a grid of `shape` to `path`.
     `index_to_local`: 4x4, a voxel index (its centre) to the Volume object's local coordinates. `where`
     names the input in errors (a file, a frame); `owner`, the NeRF's name, is recorded in the grids."""
@@ -82,8 +92,11 @@ def write_vdb(path, shape, index_to_local: np.ndarray, index: np.ndarray, densit
         nx, ny, nz = (int(s) for s in shape)
         layers = max(1, SLAB_VOXELS // max(1, ny * nz))
         # The largest slab (colour), the sorted copies of the voxels and OpenVDB's trees (about 32 bytes a voxel).
-        check_memory(12.0 * layers * ny * nz + 60.0 * len(index), f"the OpenVDB file of {where}",
-                     "bake it at a lower resolution, or over a smaller box")
+        check_memory(
+            12.0 * layers * ny * nz + 60.0 * len(index),
+            f"the OpenVDB file of {where}",
+            "bake it at a lower resolution, or over a smaller box",
+        )
     except EngineError as error:
         raise VolumeFileError(str(error)) from None
     vdb = openvdb_module()
@@ -95,8 +108,9 @@ def write_vdb(path, shape, index_to_local: np.ndarray, index: np.ndarray, densit
         density_grid.transform = vdb.createLinearTransform(matrix)
         color_grid.transform = vdb.createLinearTransform(matrix)
     except (ArithmeticError, RuntimeError, ValueError, TypeError) as error:
-        raise VolumeFileError(f"{where}: OpenVDB cannot place its voxels ({error}); bake a larger box or at a lower "
-                              "resolution") from None
+        raise VolumeFileError(
+            f"{where}: OpenVDB cannot place its voxels ({error}); bake a larger box or at a lower resolution"
+        ) from None
     if owner is not None:
         for grid in (density_grid, color_grid):
             grid[OWNER_KEY] = str(owner)
@@ -133,9 +147,11 @@ def scaled_density(density: np.ndarray, scale: float, where: str) -> np.ndarray:
         largest = float(np.max(density))
         with np.errstate(over="ignore"):
             per_world = np.float64(largest) / scale
-        raise VolumeFileError(f"{where}: a scale of {scale:.3g} world units per NeRF unit makes the density "
-                              f"{largest:.3g} per NeRF unit overflow float32 ({per_world:.3g} per "
-                              "world unit): give the volume a larger scale")
+        raise VolumeFileError(
+            f"{where}: a scale of {scale:.3g} world units per NeRF unit makes the density "
+            f"{largest:.3g} per NeRF unit overflow float32 ({per_world:.3g} per "
+            "world unit): give the volume a larger scale"
+        )
     return scaled
 
 
@@ -149,16 +165,21 @@ def check_vdb_replaceable(path, owner: str | None = None) -> None:
     if not path.exists():
         return
     if not path.is_file():  # reading a pipe would block forever
-        raise VolumeFileError(f"cannot write {path}: it is not a file (a pipe, a socket or a device): it is left "
-                              "alone; move it, or bake into another folder")
+        raise VolumeFileError(
+            f"cannot write {path}: it is not a file (a pipe, a socket or a device): it is left "
+            "alone; move it, or bake into another folder"
+        )
     try:
         with open(path, "rb") as f:
             magic = f.read(len(OPENVDB_MAGIC))
     except OSError as exc:
-        raise VolumeFileError(f"cannot read {path} to see whether a bake may replace it: {exc.strerror or exc}") from None
+        raise VolumeFileError(
+            f"cannot read {path} to see whether a bake may replace it: {exc.strerror or exc}"
+        ) from None
     if magic != OPENVDB_MAGIC:
-        raise VolumeFileError(f"{path} exists and is not an OpenVDB file: it is left alone; move it, or bake into "
-                              "another folder")
+        raise VolumeFileError(
+            f"{path} exists and is not an OpenVDB file: it is left alone; move it, or bake into another folder"
+        )
     if owner is None:
         return
     try:
@@ -166,22 +187,25 @@ def check_vdb_replaceable(path, owner: str | None = None) -> None:
         owners = {str(g[OWNER_KEY]) for g in grids if OWNER_KEY in g.metadata}
         names = tuple(sorted(g.name for g in grids))
     except (OSError, RuntimeError, ValueError, KeyError, TypeError) as exc:
-        raise VolumeFileError(f"{path} exists and cannot be read as OpenVDB ({exc}): it is left alone; move it, or "
-                              "bake into another folder") from None
+        raise VolumeFileError(
+            f"{path} exists and cannot be read as OpenVDB ({exc}): it is left alone; move it, or "
+            "bake into another folder"
+        ) from None
     if owners == {owner} or (not owners and names == GRID_NAMES):
         return
     whose = f"a bake of {sorted(owners)[0]!r}" if owners else f"a volume of other grids ({', '.join(names) or 'none'})"
-    raise VolumeFileError(f"{path} exists and is {whose}, not of {owner!r}: it is left alone; move it, or bake into "
-                          "another folder")
+    raise VolumeFileError(
+        f"{path} exists and is {whose}, not of {owner!r}: it is left alone; move it, or bake into another folder"
+    )
 
 
 def _content_uuid(path: Path) -> None:
     """Replace the file's random UUID by one derived from the rest of its bytes."""
     data = bytearray(path.read_bytes())
-    field = bytes(data[_UUID_AT: _UUID_AT + _UUID_LENGTH])
+    field = bytes(data[_UUID_AT : _UUID_AT + _UUID_LENGTH])
     if not data.startswith(b" BDV") or field.count(b"-") != 4:
         return  # not the header layout this was written for: leave the file as OpenVDB wrote it
-    digest = hashlib.sha256(bytes(data[:_UUID_AT]) + bytes(data[_UUID_AT + _UUID_LENGTH:])).hexdigest().upper()
+    digest = hashlib.sha256(bytes(data[:_UUID_AT]) + bytes(data[_UUID_AT + _UUID_LENGTH :])).hexdigest().upper()
     uuid = f"{digest[:8]}-{digest[8:12]}-{digest[12:16]}-{digest[16:20]}-{digest[20:32]}".encode()
     with open(path, "r+b") as f:
         f.seek(_UUID_AT)

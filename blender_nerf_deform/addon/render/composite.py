@@ -52,14 +52,24 @@ def _sync_mesh_scene(scene: bpy.types.Scene, mesh_scene: bpy.types.Scene, engine
     mesh_scene.camera = scene.camera
     mesh_scene.world = scene.world
     mesh_scene.render.engine = engine
-    for name in ("resolution_x", "resolution_y", "resolution_percentage", "pixel_aspect_x", "pixel_aspect_y",
-                 "film_transparent", "fps", "fps_base"):
+    for name in (
+        "resolution_x",
+        "resolution_y",
+        "resolution_percentage",
+        "pixel_aspect_x",
+        "pixel_aspect_y",
+        "film_transparent",
+        "fps",
+        "fps_base",
+    ):
         setattr(mesh_scene.render, name, getattr(scene.render, name))
     mesh_scene.frame_start, mesh_scene.frame_end = scene.frame_start, scene.frame_end
     mesh_scene.view_layers[0].use_pass_z = True
 
 
-def _build_tree(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer, mesh_scene: bpy.types.Scene) -> bpy.types.NodeTree:
+def _build_tree(
+    scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer, mesh_scene: bpy.types.Scene
+) -> bpy.types.NodeTree:
     tree = bpy.data.node_groups.new(TREE_NAME, "CompositorNodeTree")
     tree[TREE_KEY] = True
     tree.interface.new_socket(name="Image", in_out="OUTPUT", socket_type="NodeSocketColor")
@@ -83,16 +93,19 @@ def _build_tree(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer, mesh_sc
     return tree
 
 
-def composite_with_scene(scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer | None = None,
-                         engine: str = "CYCLES") -> tuple[bpy.types.Scene, bpy.types.NodeTree, str]:
+def composite_with_scene(
+    scene: bpy.types.Scene, view_layer: bpy.types.ViewLayer | None = None, engine: str = "CYCLES"
+) -> tuple[bpy.types.Scene, bpy.types.NodeTree, str]:
     """Set up (or bring back in step) the composite of `scene`'s NeRFs (rendered in `view_layer`,
     default the first) with its meshes.
     Returns (meshes scene, compositor node group, what was done, for the report)."""
     if scene.camera is None:
         raise ValueError(f"scene '{scene.name}' has no active camera: the meshes are rendered from it")
     if scene.background_set is not None and scene.get(MESH_SCENE_KEY) is None and mesh_scene_of(scene.background_set):
-        raise ValueError(f"scene '{scene.name}' is the meshes scene of '{scene.background_set.name}': "
-                         f"run Composite With Scene in '{scene.background_set.name}'")
+        raise ValueError(
+            f"scene '{scene.name}' is the meshes scene of '{scene.background_set.name}': "
+            f"run Composite With Scene in '{scene.background_set.name}'"
+        )
     mesh_scene = mesh_scene_of(scene)
     notes = []
     if mesh_scene is None:
@@ -121,8 +134,9 @@ class NERFDEFORM_OT_composite_with_scene(bpy.types.Operator):
     bl_label = "Composite With Scene"
     bl_options = {"REGISTER", "UNDO"}
 
-    engine: EnumProperty(name="Meshes Engine", items=ENGINES, default="CYCLES",
-                         description="Render engine of the scene's meshes")
+    engine: EnumProperty(
+        name="Meshes Engine", items=ENGINES, default="CYCLES", description="Render engine of the scene's meshes"
+    )
 
     @classmethod
     def poll(cls, context):
@@ -138,8 +152,11 @@ class NERFDEFORM_OT_composite_with_scene(bpy.types.Operator):
             self.report({"ERROR"}, f"Composite With Scene: {error}")
             return {"CANCELLED"}
         engine = dict((key, label) for key, label, _ in ENGINES)[self.engine]
-        self.report({"INFO"}, f"Composite With Scene: the meshes render in scene '{mesh_scene.name}' ({engine}) and "
-                              f"merge with the NeRFs by depth in the compositor '{tree.name}'" + (f"; {notes}" if notes else ""))
+        self.report(
+            {"INFO"},
+            f"Composite With Scene: the meshes render in scene '{mesh_scene.name}' ({engine}) and "
+            f"merge with the NeRFs by depth in the compositor '{tree.name}'" + (f"; {notes}" if notes else ""),
+        )
         return {"FINISHED"}
 
 

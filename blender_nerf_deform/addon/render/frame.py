@@ -59,7 +59,9 @@ class NerfPose:
         """Changes whenever what this NeRF renders does (placement, checkpoint, pose, content)."""
         shared_keys = sorted((slot, key) for slot, (key, _load) in self.shared.items())
         header = repr((self.name, self.params, shared_keys, sorted(self.arrays))).encode()
-        return content_key(np.frombuffer(header, np.uint8), self.to_nerf, *(self.arrays[k] for k in sorted(self.arrays)))
+        return content_key(
+            np.frombuffer(header, np.uint8), self.to_nerf, *(self.arrays[k] for k in sorted(self.arrays))
+        )
 
 
 def nerf_pose(depsgraph, nerf) -> NerfPose:
@@ -116,7 +118,9 @@ class Frame:
 
 
 def empty_frame(width: int, height: int) -> Frame:
-    return Frame(np.zeros((height, width, 4), dtype=np.float32), np.full((height, width), NO_HIT_DEPTH, dtype=np.float32))
+    return Frame(
+        np.zeros((height, width, 4), dtype=np.float32), np.full((height, width), NO_HIT_DEPTH, dtype=np.float32)
+    )
 
 
 def passes(out: dict, depth_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,13 +137,17 @@ def render_warnings(nerf_name: str, frame: int, result: dict) -> list[str]:
     fold-free pose can mirror a region), inverted or degenerate cage tets (Cage Modifiers can fold)."""
     warnings = []
     if mirrored := result.get("reflected_handles"):
-        warnings.append(f"NeRF Deform: {nerf_name}, frame {frame}: handle{'s' if len(mirrored) > 1 else ''} "
-                        f"{', '.join(mirrored)} mirror{'' if len(mirrored) > 1 else 's'} its region (a negative scale); "
-                        "a deformation that never folds cannot mirror, so the region stays unmirrored: "
-                        "give the handle a positive scale")
+        warnings.append(
+            f"NeRF Deform: {nerf_name}, frame {frame}: handle{'s' if len(mirrored) > 1 else ''} "
+            f"{', '.join(mirrored)} mirror{'' if len(mirrored) > 1 else 's'} its region (a negative scale); "
+            "a deformation that never folds cannot mirror, so the region stays unmirrored: "
+            "give the handle a positive scale"
+        )
     if result.get("inverted_tets") or result.get("degenerate_tets"):
-        warnings.append(f"NeRF Deform: {nerf_name}, frame {frame}: {result.get('inverted_tets', 0)} inverted and "
-                        f"{result.get('degenerate_tets', 0)} degenerate cage tets (folds show the folded content)")
+        warnings.append(
+            f"NeRF Deform: {nerf_name}, frame {frame}: {result.get('inverted_tets', 0)} inverted and "
+            f"{result.get('degenerate_tets', 0)} degenerate cage tets (folds show the folded content)"
+        )
     return warnings
 
 
@@ -170,8 +178,14 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
                 if on_progress:
                     on_progress((k + fraction) / len(nerfs), message)
 
-            result, out = client.call("render", request.params, request.arrays, shared=request.shared,
-                                      on_progress=progress, should_cancel=should_cancel)
+            result, out = client.call(
+                "render",
+                request.params,
+                request.arrays,
+                shared=request.shared,
+                on_progress=progress,
+                should_cancel=should_cancel,
+            )
             frame.warnings.extend(render_warnings(nerf.name, scene.frame_current, result))
             layers.append(passes(out, request.depth_factor))
         frame.rgba, frame.depth = composite_by_depth(layers)
@@ -184,7 +198,9 @@ def render_frame(depsgraph, width: int, height: int, *, on_progress=None, should
             # frame must not pass for a rendered one.
             error = f"the render of frame {scene.frame_current} was cancelled in the NeRF worker ({error})"
         # Name the NeRF at fault when there are several (its checkpoint, its cage).
-        where = f"{current.name}: " if current is not None and len(nerfs) > 1 and not isinstance(error, CameraError) else ""
+        where = (
+            f"{current.name}: " if current is not None and len(nerfs) > 1 and not isinstance(error, CameraError) else ""
+        )
         frame.error = f"NeRF Deform: {where}{error}"
     except Exception:  # a bug: the frame fails with one line naming the log of its traceback
         what = f"{current.name}, frame {scene.frame_current}" if current is not None else f"frame {scene.frame_current}"

@@ -35,7 +35,9 @@ class PreviewJob:
             raise ValueError("no NeRF object in the scene to preview: use Load NeRF first")
         poses = [nerf_pose(depsgraph, nerf) for nerf in nerfs]
         self.client = jobs.worker(context)
-        self._render = ProgressiveRender(self.client, poses, scene_pinhole(depsgraph), self._arrived, downscales=DOWNSCALES)
+        self._render = ProgressiveRender(
+            self.client, poses, scene_pinhole(depsgraph), self._arrived, downscales=DOWNSCALES
+        )
 
     @property
     def state(self) -> str:  # running, finished, cancelled, failed

@@ -50,10 +50,19 @@ class NERFDEFORM_RenderEngine(bpy.types.RenderEngine):
 
     def render(self, depsgraph):
         scale = depsgraph.scene.render.resolution_percentage / 100.0
-        width, height = int(depsgraph.scene.render.resolution_x * scale), int(depsgraph.scene.render.resolution_y * scale)
+        width, height = (
+            int(depsgraph.scene.render.resolution_x * scale),
+            int(depsgraph.scene.render.resolution_y * scale),
+        )
         self.add_pass("Alpha", 1, "A")
-        frame = render_frame(depsgraph, width, height, on_progress=lambda f, _m: self.update_progress(f),
-                             should_cancel=self.test_break, on_status=lambda text: self.update_stats("", text))
+        frame = render_frame(
+            depsgraph,
+            width,
+            height,
+            on_progress=lambda f, _m: self.update_progress(f),
+            should_cancel=self.test_break,
+            on_status=lambda text: self.update_stats("", text),
+        )
         if frame.cancelled:
             return
         for warning in frame.warnings:

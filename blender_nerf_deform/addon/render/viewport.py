@@ -27,7 +27,7 @@ through the scene camera into an Image.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -38,12 +38,14 @@ from ..worker.client import WorkerError
 from .frame import NerfPose, camera_request, nerf_pose, nerfs_to_render, passes
 
 DOWNSCALES = (8, 4, 2, 1)
-ORTHOGRAPHIC = ("NeRF Deform draws perspective views only; this view is orthographic "
-                "(View > Perspective/Orthographic, or numpad 5)")
+ORTHOGRAPHIC = (
+    "NeRF Deform draws perspective views only; this view is orthographic (View > Perspective/Orthographic, or numpad 5)"
+)
 
 
-def pinhole_from_view(view_matrix, window_matrix, width: int, height: int, clip_start: float = 0.01,
-                      clip_end: float = 1000.0) -> Pinhole:
+def pinhole_from_view(
+    view_matrix, window_matrix, width: int, height: int, clip_start: float = 0.01, clip_end: float = 1000.0
+) -> Pinhole:
     """The pinhole camera of a 3D View: `view_matrix` (world → view) and `window_matrix` (the
     OpenGL projection) of its RegionView3D, for a region of width x height pixels.
 
@@ -84,8 +86,15 @@ class ProgressiveRender:
     steps follow), `on_failed(render, message)`, also called with "" when a superseded render was
     cancelled by the worker (stopped or restarted), so that its successor can start."""
 
-    def __init__(self, client, poses: list[NerfPose], pinhole: Pinhole, on_image: Callable,
-                 on_failed: Callable | None = None, downscales=DOWNSCALES):
+    def __init__(
+        self,
+        client,
+        poses: list[NerfPose],
+        pinhole: Pinhole,
+        on_image: Callable,
+        on_failed: Callable | None = None,
+        downscales=DOWNSCALES,
+    ):
         self.client = client
         self.poses = poses
         self.pinhole = pinhole
@@ -101,7 +110,7 @@ class ProgressiveRender:
         self._layers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._end_after_step = False
 
-    def start(self) -> "ProgressiveRender":
+    def start(self) -> ProgressiveRender:
         if not self.poses:
             self.state = "finished"
         else:
@@ -117,9 +126,13 @@ class ProgressiveRender:
                 # Coarse images march one sample per step (speed); the last, full-size one is F12's.
                 request = camera_request(posed, pinhole, substeps=None if step + 1 == len(self.downscales) else 1)
                 request_id = self.client.submit(
-                    "render", request.params, request.arrays, shared=request.shared,
-                    on_done=lambda _result, out, step=step, index=index, factor=request.depth_factor:
-                        self._arrived(step, index, passes(out, factor)),
+                    "render",
+                    request.params,
+                    request.arrays,
+                    shared=request.shared,
+                    on_done=lambda _result, out, step=step, index=index, factor=request.depth_factor: self._arrived(
+                        step, index, passes(out, factor)
+                    ),
                     on_error=self._failed,
                 )
                 self._pending.add(request_id)

@@ -31,22 +31,40 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 from ..data.paths import default_run_folder, same_file
 from ..worker.jobs import WorkerOperator
 
-
 # What a dataset's masks mean (the engine's `train --masks`, silhouettes.py), as Blender enum items.
-MASK_ITEMS = (("auto", "Auto", "Decided by their shape: Object when the masks keep a shape inside the photo, Ignore "
-                               "when they keep most of it (the report says which)"),
-              ("object", "Object", "The object alone is real: outside the mask is empty space, and the NeRF renders "
-                                   "transparent around the object (turntable and product captures)"),
-              ("ignore", "Ignore", "The masked-out pixels are not trained (passers-by); the rest of the photo is"))
-MASK_REPORTS = {"object": "masks read as the object alone (transparent around it)",
-                "ignore": "masks read as pixels to skip"}
+MASK_ITEMS = (
+    (
+        "auto",
+        "Auto",
+        "Decided by their shape: Object when the masks keep a shape inside the photo, Ignore "
+        "when they keep most of it (the report says which)",
+    ),
+    (
+        "object",
+        "Object",
+        "The object alone is real: outside the mask is empty space, and the NeRF renders "
+        "transparent around the object (turntable and product captures)",
+    ),
+    ("ignore", "Ignore", "The masked-out pixels are not trained (passers-by); the rest of the photo is"),
+)
+MASK_REPORTS = {
+    "object": "masks read as the object alone (transparent around it)",
+    "ignore": "masks read as pixels to skip",
+}
 
 
-def train_params(data: str, out: str, seconds: float, steps: int, device: str, downscale: int, resume: bool,
-                 masks: str = "auto") -> dict:
+def train_params(
+    data: str, out: str, seconds: float, steps: int, device: str, downscale: int, resume: bool, masks: str = "auto"
+) -> dict:
     """The worker's `train` request (a budget of seconds and/or steps; 0 is no limit)."""
-    params = {"data": data, "out": out, "device": device, "downscale": int(downscale), "resume": bool(resume),
-              "masks": masks}
+    params = {
+        "data": data,
+        "out": out,
+        "device": device,
+        "downscale": int(downscale),
+        "resume": bool(resume),
+        "masks": masks,
+    }
     if seconds > 0:
         params["max_seconds"] = float(seconds)
     if steps > 0:
@@ -59,11 +77,24 @@ def show_trained(op, context, result: dict, ckpt: str) -> set[str]:
     refresh the objects that already show it."""
     ckpt = result.get("checkpoint", ckpt)
     how = "cancelled, the checkpoint so far kept" if result.get("cancelled") else "done"
-    masks = f"; {MASK_REPORTS[result['masks']]}: {result.get('masks_reason')}" if result.get("masks") in MASK_REPORTS else ""
-    op.report({"INFO"}, f"{op.bl_label} {how}: {result.get('steps', 0)} steps in {result.get('seconds', 0):.0f} s, "
-                        f"batch PSNR {result.get('psnr', float('nan')):.1f} dB -> {ckpt}{masks}")
-    existing = [o for o in bpy.data.objects if o.nerf_deform.role == "NERF" and o.users_collection
-                and o.nerf_deform.checkpoint and same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)]
+    masks = (
+        f"; {MASK_REPORTS[result['masks']]}: {result.get('masks_reason')}"
+        if result.get("masks") in MASK_REPORTS
+        else ""
+    )
+    op.report(
+        {"INFO"},
+        f"{op.bl_label} {how}: {result.get('steps', 0)} steps in {result.get('seconds', 0):.0f} s, "
+        f"batch PSNR {result.get('psnr', float('nan')):.1f} dB -> {ckpt}{masks}",
+    )
+    existing = [
+        o
+        for o in bpy.data.objects
+        if o.nerf_deform.role == "NERF"
+        and o.users_collection
+        and o.nerf_deform.checkpoint
+        and same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)
+    ]
     if existing:
         for nerf in existing:
             nerf.update_tag()  # renders and the viewport take the new weights (the worker reloads the file)
@@ -82,19 +113,37 @@ class NERFDEFORM_OT_train_nerf(WorkerOperator, bpy.types.Operator):
     bl_label = "Train NeRF"
     bl_options = {"REGISTER"}
 
-    data: StringProperty(name="Dataset", subtype="DIR_PATH",
-                         description="Folder of a dataset: transforms.json (+ images), LLFF or a COLMAP model")
-    run_folder: StringProperty(name="Run Folder", subtype="DIR_PATH",
-                               description="Where nerf.ckpt is written (empty: //nerf_runs/<dataset name>)")
-    seconds: FloatProperty(name="Time Budget", default=300.0, min=0.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE",
-                           description="Seconds of training (0: no time limit, use Steps)")
+    data: StringProperty(
+        name="Dataset",
+        subtype="DIR_PATH",
+        description="Folder of a dataset: transforms.json (+ images), LLFF or a COLMAP model",
+    )
+    run_folder: StringProperty(
+        name="Run Folder",
+        subtype="DIR_PATH",
+        description="Where nerf.ckpt is written (empty: //nerf_runs/<dataset name>)",
+    )
+    seconds: FloatProperty(
+        name="Time Budget",
+        default=300.0,
+        min=0.0,
+        subtype="TIME_ABSOLUTE",
+        unit="TIME_ABSOLUTE",
+        description="Seconds of training (0: no time limit, use Steps)",
+    )
     steps: IntProperty(name="Steps", default=0, min=0, description="Training steps (0: no step limit, use the time)")
-    device: EnumProperty(name="Device", items=(("auto", "Auto", "CUDA when the worker has it, else the CPU"),
-                                               ("cpu", "CPU", ""), ("cuda", "CUDA", "")), default="auto")
-    downscale: IntProperty(name="Downscale", default=1, min=1, max=16, description="Box-filter the images by this factor")
+    device: EnumProperty(
+        name="Device",
+        items=(("auto", "Auto", "CUDA when the worker has it, else the CPU"), ("cpu", "CPU", ""), ("cuda", "CUDA", "")),
+        default="auto",
+    )
+    downscale: IntProperty(
+        name="Downscale", default=1, min=1, max=16, description="Box-filter the images by this factor"
+    )
     resume: BoolProperty(name="Resume", default=False, description="Continue the run folder's checkpoint")
-    masks: EnumProperty(name="Masks", items=MASK_ITEMS, default="auto",
-                         description="What the dataset's masks (mask_path) mean")
+    masks: EnumProperty(
+        name="Masks", items=MASK_ITEMS, default="auto", description="What the dataset's masks (mask_path) mean"
+    )
 
     def request(self, context):
         data = os.path.abspath(bpy.path.abspath(self.data)) if self.data else ""
@@ -107,8 +156,20 @@ class NERFDEFORM_OT_train_nerf(WorkerOperator, bpy.types.Operator):
         if os.path.exists(ckpt) and not self.resume:
             raise ValueError(f"{ckpt} already holds a NeRF: tick Resume to continue it, or pick another run folder")
         self._checkpoint = ckpt
-        return "train", train_params(data, out, self.seconds, self.steps, self.device, self.downscale,
-                                     self.resume and os.path.exists(ckpt), self.masks), None
+        return (
+            "train",
+            train_params(
+                data,
+                out,
+                self.seconds,
+                self.steps,
+                self.device,
+                self.downscale,
+                self.resume and os.path.exists(ckpt),
+                self.masks,
+            ),
+            None,
+        )
 
     def apply(self, context, result, arrays):
         return show_trained(self, context, result, self._checkpoint)
@@ -117,21 +178,38 @@ class NERFDEFORM_OT_train_nerf(WorkerOperator, bpy.types.Operator):
 class NERFDEFORM_TrainingSettings(bpy.types.PropertyGroup):
     """The Train panel's fields (the scene's), handed to Train NeRF when its button is pressed."""
 
-    data: StringProperty(name="Dataset", subtype="DIR_PATH",
-                         description="Folder of a dataset: transforms.json (+ images), LLFF or a COLMAP model")
-    run_folder: StringProperty(name="Run Folder", subtype="DIR_PATH",
-                               description="Where nerf.ckpt is written (empty: //nerf_runs/<dataset name>)")
-    seconds: FloatProperty(name="Time Budget (s)", default=300.0, min=0.0, description="Seconds of training (0: use Steps)")
+    data: StringProperty(
+        name="Dataset",
+        subtype="DIR_PATH",
+        description="Folder of a dataset: transforms.json (+ images), LLFF or a COLMAP model",
+    )
+    run_folder: StringProperty(
+        name="Run Folder",
+        subtype="DIR_PATH",
+        description="Where nerf.ckpt is written (empty: //nerf_runs/<dataset name>)",
+    )
+    seconds: FloatProperty(
+        name="Time Budget (s)", default=300.0, min=0.0, description="Seconds of training (0: use Steps)"
+    )
     steps: IntProperty(name="Steps", default=0, min=0, description="Training steps (0: use the time budget)")
-    device: EnumProperty(name="Device", items=(("auto", "Auto", "CUDA when the worker has it, else the CPU"),
-                                               ("cpu", "CPU", ""), ("cuda", "CUDA", "")), default="auto")
-    downscale: IntProperty(name="Downscale", default=1, min=1, max=16, description="Box-filter the images by this factor")
+    device: EnumProperty(
+        name="Device",
+        items=(("auto", "Auto", "CUDA when the worker has it, else the CPU"), ("cpu", "CPU", ""), ("cuda", "CUDA", "")),
+        default="auto",
+    )
+    downscale: IntProperty(
+        name="Downscale", default=1, min=1, max=16, description="Box-filter the images by this factor"
+    )
     resume: BoolProperty(name="Resume", default=False, description="Continue the run folder's checkpoint")
-    masks: EnumProperty(name="Masks", items=MASK_ITEMS, default="auto",
-                        description="What the dataset's masks (mask_path) mean")
-    photos: StringProperty(name="Photos", subtype="DIR_PATH",
-                           description="Folder of photos (.jpg/.png) for Import Photos: cameras by structure from "
-                                       "motion, then training (run folder //nerf_runs/<folder name>)")
+    masks: EnumProperty(
+        name="Masks", items=MASK_ITEMS, default="auto", description="What the dataset's masks (mask_path) mean"
+    )
+    photos: StringProperty(
+        name="Photos",
+        subtype="DIR_PATH",
+        description="Folder of photos (.jpg/.png) for Import Photos: cameras by structure from "
+        "motion, then training (run folder //nerf_runs/<folder name>)",
+    )
 
 
 _classes = (NERFDEFORM_OT_train_nerf, NERFDEFORM_TrainingSettings)

@@ -57,9 +57,13 @@ def panel_checkpoints(context) -> list[str]:
     if t.run_folder:
         found.append(os.path.join(os.path.abspath(bpy.path.abspath(t.run_folder)), "nerf.ckpt"))
     elif t.data:
-        found.append(os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.data)), create=False), "nerf.ckpt"))
+        found.append(
+            os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.data)), create=False), "nerf.ckpt")
+        )
     if t.photos:
-        found.append(os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.photos)), create=False), "nerf.ckpt"))
+        found.append(
+            os.path.join(default_run_folder(os.path.abspath(bpy.path.abspath(t.photos)), create=False), "nerf.ckpt")
+        )
     return found
 
 
@@ -72,7 +76,12 @@ def world_to_nerf(context, checkpoint: str) -> np.ndarray:
     (its origin at the 3D cursor)."""
     for nerf in bpy.data.objects:
         s = nerf.nerf_deform
-        if s.role == "NERF" and s.checkpoint and nerf.users_collection and same_file(bpy.path.abspath(s.checkpoint), checkpoint):
+        if (
+            s.role == "NERF"
+            and s.checkpoint
+            and nerf.users_collection
+            and same_file(bpy.path.abspath(s.checkpoint), checkpoint)
+        ):
             return np.array(to_nerf_frame(nerf), dtype=np.float64)
     to_nerf = np.eye(4)
     to_nerf[:3, 3] = -np.array(context.scene.cursor.location, dtype=np.float64)
@@ -97,7 +106,9 @@ def show_preview(result: dict, arrays: dict) -> str:
     """Write the frame into the preview image and show it; returns what to tell the user."""
     rgba = arrays["rgba"]
     alpha = rgba[..., 3:]
-    linear = np.concatenate([srgb_to_linear(rgba[..., :3]) * alpha, alpha], axis=-1)  # premultiplied, as write_image takes
+    linear = np.concatenate(
+        [srgb_to_linear(rgba[..., :3]) * alpha, alpha], axis=-1
+    )  # premultiplied, as write_image takes
     show_in_image_editors(write_image(linear, IMAGE_NAME))
     size = f"{rgba.shape[1]}x{rgba.shape[0]}"
     if result.get("source") == "training":
@@ -124,10 +135,18 @@ class NERFDEFORM_OT_preview_training(bpy.types.Operator):
     bl_idname = "nerf_deform.preview_training"
     bl_label = "Preview"
 
-    run_folder: StringProperty(name="Run Folder", subtype="DIR_PATH",
-                               description="The run to preview (empty: the training running now, else the Train panel's)")
-    max_size: IntProperty(name="Size", default=160, min=16, max=1024,
-                          description="Longest side of the preview in pixels (the training waits while it renders)")
+    run_folder: StringProperty(
+        name="Run Folder",
+        subtype="DIR_PATH",
+        description="The run to preview (empty: the training running now, else the Train panel's)",
+    )
+    max_size: IntProperty(
+        name="Size",
+        default=160,
+        min=16,
+        max=1024,
+        description="Longest side of the preview in pixels (the training waits while it renders)",
+    )
 
     @classmethod
     def poll(cls, context):
@@ -143,8 +162,10 @@ class NERFDEFORM_OT_preview_training(bpy.types.Operator):
             running = running_checkpoints()
             found = [c for c in panel_checkpoints(context) if os.path.isfile(c)]
             if not running and not found:
-                raise ValueError("no training runs and the Train panel's run folder holds no checkpoint: "
-                                 "start Train NeRF or Import Photos first")
+                raise ValueError(
+                    "no training runs and the Train panel's run folder holds no checkpoint: "
+                    "start Train NeRF or Import Photos first"
+                )
             checkpoint = running[-1] if running else found[0]
         return preview_params(context, checkpoint, int(self.max_size))
 

@@ -33,8 +33,12 @@ class NERFDEFORM_PT_main(bpy.types.Panel):
             row = box.row(align=True)
             selected = region.select_get() if context.view_layer.objects.get(region.name) == region else False
             row.label(text=region.name, icon="CUBE")
-            row.operator("nerf_deform.select_edit_region", text="", icon="RESTRICT_SELECT_OFF" if selected else "RESTRICT_SELECT_ON",
-                         depress=selected).name = region.name
+            row.operator(
+                "nerf_deform.select_edit_region",
+                text="",
+                icon="RESTRICT_SELECT_OFF" if selected else "RESTRICT_SELECT_ON",
+                depress=selected,
+            ).name = region.name
         col = box.column(align=True)
         col.prop(s, "pick_object")
         col.prop(s, "pin_cut")

@@ -21,23 +21,33 @@ class NERFDEFORM_AddonPreferences(bpy.types.AddonPreferences):
     )
     worker_build: EnumProperty(
         name="Build",
-        items=(("CPU", "CPU", "torch for the CPU (smaller download)"),
-               ("CUDA", "CUDA", "torch with CUDA, for an NVIDIA GPU")),
+        items=(
+            ("CPU", "CPU", "torch for the CPU (smaller download)"),
+            ("CUDA", "CUDA", "torch with CUDA, for an NVIDIA GPU"),
+        ),
         default="CPU",
     )
     torch_source: EnumProperty(
         name="Torch Source",
-        items=(("AUTO", "PyTorch Index", "PyTorch's own index for the chosen build where PyPI's torch is another build "
-                                         "(CPU on Linux and Windows, CUDA on Windows), else PyPI"),
-               ("PIP", "pip's Configuration", "The index or mirror pip is configured with, as for every other package"),
-               ("CUSTOM", "Custom Index", "The index URL below")),
+        items=(
+            (
+                "AUTO",
+                "PyTorch Index",
+                "PyTorch's own index for the chosen build where PyPI's torch is another build "
+                "(CPU on Linux and Windows, CUDA on Windows), else PyPI",
+            ),
+            ("PIP", "pip's Configuration", "The index or mirror pip is configured with, as for every other package"),
+            ("CUSTOM", "Custom Index", "The index URL below"),
+        ),
         default="AUTO",
     )
     torch_index_url: StringProperty(name="Torch Index", description="Package index URL that torch is installed from")
     base_python: StringProperty(
-        name="Base Python", subtype="FILE_PATH", default="",
+        name="Base Python",
+        subtype="FILE_PATH",
+        default="",
         description="Python 3.11 the worker environment is made from (empty: Blender's own when it is 3.11, "
-                    "else a python3.11 found on the system)",
+        "else a python3.11 found on the system)",
     )
 
     start_worker_on_open: BoolProperty(
@@ -80,7 +90,9 @@ def draw_worker_environment(layout, context) -> None:
         box.label(text=f"Found: {env}")
         row = box.row()
         row.operator(worker_setup.NERFDEFORM_OT_setup_worker.bl_idname, text="Reuse", icon="CHECKMARK").mode = "REUSE"
-        row.operator(worker_setup.NERFDEFORM_OT_setup_worker.bl_idname, text="Rebuild", icon="FILE_REFRESH").mode = "REBUILD"
+        row.operator(
+            worker_setup.NERFDEFORM_OT_setup_worker.bl_idname, text="Rebuild", icon="FILE_REFRESH"
+        ).mode = "REBUILD"
     last = worker_setup.last_job()
     if last is not None and last.done == "error":
         box.label(text=f"Last setup failed: {last.error}"[:160], icon="ERROR")

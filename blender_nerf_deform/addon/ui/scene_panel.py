@@ -27,9 +27,12 @@ def _in_render(obj: bpy.types.Object, view_layer: bpy.types.ViewLayer) -> bool:
         return False
 
     def renders(layer_collection) -> bool:
-        return any(not child.exclude and not child.collection.hide_render
-                   and (obj.name in child.collection.objects or renders(child))
-                   for child in layer_collection.children)
+        return any(
+            not child.exclude
+            and not child.collection.hide_render
+            and (obj.name in child.collection.objects or renders(child))
+            for child in layer_collection.children
+        )
 
     root = view_layer.layer_collection
     return obj.name in root.collection.objects or renders(root)
@@ -58,8 +61,11 @@ def nerf_status(nerf: bpy.types.Object, view_layer: bpy.types.ViewLayer) -> dict
             status["stale"].append("the stored cage is damaged: Build Cage again")
     if surface is not None and not same_regions(extracted_regions(surface), edit_regions_of(nerf)):
         status["stale"].append("regions changed since the mesh was extracted: Extract Mesh again")
-    if surface is not None and status["cage_tets"] and (
-            EMBED_TET_KEY not in surface.data or surface.data.get(EMBED_COUNT_KEY) != len(surface.data.vertices)):
+    if (
+        surface is not None
+        and status["cage_tets"]
+        and (EMBED_TET_KEY not in surface.data or surface.data.get(EMBED_COUNT_KEY) != len(surface.data.vertices))
+    ):
         status["stale"].append("the mesh changed since the cage was built: Build Cage again")
     if surface is None and cage is None:
         status["stale"].append("no mesh yet: Extract Mesh, then Build Cage")
@@ -110,19 +116,29 @@ class NERFDEFORM_PT_scene_nerfs(bpy.types.Panel):
             st = nerf_status(nerf, context.view_layer)
             box = self.layout.box()
             row = box.row(align=True)
-            op = row.operator(NERFDEFORM_OT_activate_nerf.bl_idname, text=nerf.name, icon="OUTLINER_OB_EMPTY",
-                              depress=nerf == active, emboss=True)
+            op = row.operator(
+                NERFDEFORM_OT_activate_nerf.bl_idname,
+                text=nerf.name,
+                icon="OUTLINER_OB_EMPTY",
+                depress=nerf == active,
+                emboss=True,
+            )
             op.name = nerf.name
             row.label(text="", icon="HIDE_OFF" if st["in_viewport"] else "HIDE_ON")
             row.prop(nerf, "hide_viewport", text="", emboss=False)
             row.prop(nerf, "hide_render", text="", emboss=False)
             col = box.column(align=True)
-            col.label(text=f"Viewport: {'shown' if st['in_viewport'] else 'hidden'}   "
-                           f"Render: {'shown' if st['in_render'] else 'hidden'}")
+            col.label(
+                text=f"Viewport: {'shown' if st['in_viewport'] else 'hidden'}   "
+                f"Render: {'shown' if st['in_render'] else 'hidden'}"
+            )
             col.label(text=f"Regions: {', '.join(st['regions'])}" if st["regions"] else "Regions: none (the whole box)")
             mesh = f"{st['surface_vertices']:,} vertices" if st["surface_vertices"] else "none"
-            cage = (f"{st['cage_tets']:,} tets, {st['cage_pieces']} piece{'s' if st['cage_pieces'] != 1 else ''}"
-                    if st["cage_tets"] else "none")
+            cage = (
+                f"{st['cage_tets']:,} tets, {st['cage_pieces']} piece{'s' if st['cage_pieces'] != 1 else ''}"
+                if st["cage_tets"]
+                else "none"
+            )
             col.label(text=f"Mesh: {mesh}   Cage: {cage}")
             for line in st["stale"]:
                 col.label(text=line, icon="ERROR" if "changed" in line else "INFO")

@@ -85,8 +85,12 @@ class NERFDEFORM_PT_capture(_StagePanel, bpy.types.Panel):
         col.prop(s, "transparent")
         col.prop(s, "selected_only")
         selected = len(renderable(context.selected_objects))
-        col.label(text=f"{selected} selected object{'s' if selected != 1 else ''} to capture"
-                  if selected else "Select the objects to capture", icon="RESTRICT_SELECT_OFF")
+        col.label(
+            text=f"{selected} selected object{'s' if selected != 1 else ''} to capture"
+            if selected
+            else "Select the objects to capture",
+            icon="RESTRICT_SELECT_OFF",
+        )
         op = col.operator(NERFDEFORM_OT_capture_dataset.bl_idname, icon="RENDER_STILL")
         for name in CAPTURE_OPTIONS:
             setattr(op, name, getattr(s, name))

@@ -39,9 +39,9 @@ import shutil
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -183,9 +183,14 @@ class WorkerClient:
 
     def _start(self) -> None:
         if not self.python:
-            raise WorkerError("no worker Python is set: set NeRF Deform's Worker Python preference to a Python 3.11 with torch", "setup")
+            raise WorkerError(
+                "no worker Python is set: set NeRF Deform's Worker Python preference to a Python 3.11 with torch",
+                "setup",
+            )
         if not Path(self.python).is_file():
-            raise WorkerError(f"worker Python {self.python} does not exist: fix NeRF Deform's Worker Python preference", "setup")
+            raise WorkerError(
+                f"worker Python {self.python} does not exist: fix NeRF Deform's Worker Python preference", "setup"
+            )
         env, work = worker_environment()
         self._stderr_tail.clear()
         self._given.clear()  # a new worker holds nothing yet
@@ -204,7 +209,9 @@ class WorkerClient:
         stderr_pump = threading.Thread(target=self._pump_stderr, args=(proc,), name="nerf-worker-stderr", daemon=True)
         stderr_pump.start()
         first: queue.Queue = queue.Queue()
-        stdout_pump = threading.Thread(target=self._pump_stdout, args=(proc, first), name="nerf-worker-stdout", daemon=True)
+        stdout_pump = threading.Thread(
+            target=self._pump_stdout, args=(proc, first), name="nerf-worker-stdout", daemon=True
+        )
         stdout_pump.start()
         self._readers = [stderr_pump, stdout_pump]
         timeout = START_TIMEOUT_S
@@ -226,8 +233,11 @@ class WorkerClient:
                 "of starting and was stopped. It may only have been slow (importing torch or compiling kernels on a "
                 "busy machine): try again, or give it longer with the environment variable "
                 "NERF_DEFORM_WORKER_START_TIMEOUT=<seconds>. "
-                + (f"Its last output:\n{tail}" if tail else "It wrote nothing (its output goes to Blender's console, "
-                   "prefixed [nerf worker])."),
+                + (
+                    f"Its last output:\n{tail}"
+                    if tail
+                    else "It wrote nothing (its output goes to Blender's console, prefixed [nerf worker])."
+                ),
                 "setup",
             ) from None
         if header.get("type") == "fatal":
@@ -251,7 +261,13 @@ class WorkerClient:
             pending = list(self._requests.values())
             self._requests.clear()
         for request in pending:
-            self._deliver(request, ({"type": "error", "id": request.id, "kind": "cancelled", "message": "the NeRF worker was stopped"}, {}))
+            self._deliver(
+                request,
+                (
+                    {"type": "error", "id": request.id, "kind": "cancelled", "message": "the NeRF worker was stopped"},
+                    {},
+                ),
+            )
         with self._lock:
             if proc is None:
                 return
@@ -338,8 +354,9 @@ class WorkerClient:
 
     # -- requests --------------------------------------------------------------
 
-    def _send_request(self, request: _Request, op: str, params: dict, arrays: dict[str, np.ndarray] | None,
-                      shared: dict | None = None) -> None:
+    def _send_request(
+        self, request: _Request, op: str, params: dict, arrays: dict[str, np.ndarray] | None, shared: dict | None = None
+    ) -> None:
         request.send = (op, params, arrays, shared)
         with self._lock:
             self.ensure_started()
@@ -347,7 +364,9 @@ class WorkerClient:
             params, arrays, given = self._with_shared(params, arrays, shared)
             self._requests[request.id] = request
             try:
-                n = write_message(self._proc.stdin, {"type": "request", "id": request.id, "op": op, "params": params}, arrays)
+                n = write_message(
+                    self._proc.stdin, {"type": "request", "id": request.id, "op": op, "params": params}, arrays
+                )
             except (OSError, ValueError):
                 del self._requests[request.id]
                 raise WorkerError(f"the NeRF worker {self._exit_report()}", "crashed") from None
@@ -477,7 +496,9 @@ class WorkerClient:
 
 
 def _error_from(header: dict) -> WorkerError:
-    return WorkerError(header.get("message", "unknown error"), header.get("kind", "internal"), header.get("traceback", ""))
+    return WorkerError(
+        header.get("message", "unknown error"), header.get("kind", "internal"), header.get("traceback", "")
+    )
 
 
 # -- the add-on's one worker, drained by a Blender timer ---------------------------

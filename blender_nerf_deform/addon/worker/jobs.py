@@ -26,7 +26,6 @@ import bpy
 from ..data.paths import worker_python
 from .client import WorkerClient, WorkerError, detect_python, get_client
 
-
 _detected: dict[str, str | None] = {}
 
 
@@ -41,7 +40,8 @@ def worker(context) -> WorkerClient:
     if python is None:
         raise WorkerError(
             "no Python with torch found: set NeRF Deform's Worker Python preference "
-            "(Edit > Preferences > Add-ons > NeRF Deform), see the README", "setup"
+            "(Edit > Preferences > Add-ons > NeRF Deform), see the README",
+            "setup",
         )
     return get_client(python)
 
@@ -97,8 +97,13 @@ class WorkerOperator:
             self.current_request = request
             label = self._label()
             try:
-                result, out = client.call(request.op, request.params, request.arrays, shared=request.shared,
-                                          on_progress=lambda f, msg: print(f"{label}: {100 * f:5.1f}% {msg}"))
+                result, out = client.call(
+                    request.op,
+                    request.params,
+                    request.arrays,
+                    shared=request.shared,
+                    on_progress=lambda f, msg: print(f"{label}: {100 * f:5.1f}% {msg}"),
+                )
             except (WorkerError, ValueError) as error:
                 return self._fail(error)
             answer = self.apply(context, result, out)
@@ -163,7 +168,9 @@ class WorkerOperator:
         state = self._state
         if state["done"] is None:
             context.window_manager.progress_update(int(100 * state["progress"]))
-            context.workspace.status_text_set(f"{self._label()}: {100 * state['progress']:.0f}% {state['message']} (Esc to cancel)")
+            context.workspace.status_text_set(
+                f"{self._label()}: {100 * state['progress']:.0f}% {state['message']} (Esc to cancel)"
+            )
             return {"RUNNING_MODAL"}
         kind, payload, out = state["done"]
         if kind == "error":
@@ -176,7 +183,9 @@ class WorkerOperator:
         if self._cancel_asked:  # the stage ended before the cancel reached it: go no further
             self._finish(context)
             self.abandon(context)
-            self.report({"WARNING"}, f"{self._label()}: cancelled after this stage; {answer.stage or answer.op} not started")
+            self.report(
+                {"WARNING"}, f"{self._label()}: cancelled after this stage; {answer.stage or answer.op} not started"
+            )
             return {"CANCELLED"}
         try:
             self._submit(answer)

@@ -57,11 +57,28 @@ TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 TORCH_CUDA_WINDOWS_INDEX = "https://download.pytorch.org/whl/cu128"
 DOWNLOAD_SIZE = "about 1 GB"
 # Module names to import to prove an environment can run the worker (package name → module).
-IMPORTS = {"torch": "torch", "numpy": "numpy", "scipy": "scipy", "scikit-image": "skimage", "trimesh": "trimesh",
-           "libigl": "igl", "pytetwild": "pytetwild", "numba": "numba", "pillow": "PIL", "pycolmap": "pycolmap"}
-_NETWORK_SIGNS = ("NewConnectionError", "Failed to establish a new connection", "Name or service not known",
-                  "Temporary failure in name resolution", "Network is unreachable", "ConnectTimeoutError",
-                  "Connection refused", "No matching distribution found")
+IMPORTS = {
+    "torch": "torch",
+    "numpy": "numpy",
+    "scipy": "scipy",
+    "scikit-image": "skimage",
+    "trimesh": "trimesh",
+    "libigl": "igl",
+    "pytetwild": "pytetwild",
+    "numba": "numba",
+    "pillow": "PIL",
+    "pycolmap": "pycolmap",
+}
+_NETWORK_SIGNS = (
+    "NewConnectionError",
+    "Failed to establish a new connection",
+    "Name or service not known",
+    "Temporary failure in name resolution",
+    "Network is unreachable",
+    "ConnectTimeoutError",
+    "Connection refused",
+    "No matching distribution found",
+)
 
 
 class SetupError(Exception):
@@ -100,8 +117,12 @@ def pins(path: Path = REQUIREMENTS) -> dict[str, str]:
 def _python_version(python: str) -> tuple[int, int] | None:
     """(major, minor) of an interpreter that has venv and ensurepip, else None."""
     try:
-        proc = subprocess.run([python, "-c", "import sys, venv, ensurepip; print(*sys.version_info[:2])"],
-                              capture_output=True, text=True, timeout=60)
+        proc = subprocess.run(
+            [python, "-c", "import sys, venv, ensurepip; print(*sys.version_info[:2])"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
     except (OSError, subprocess.TimeoutExpired):
         return None
     if proc.returncode != 0:
@@ -114,8 +135,11 @@ def base_python_candidates(preferred: str = "") -> list[str]:
     """Interpreters to make the environment from, best first (see the module docstring)."""
     found = [preferred, sys.executable]
     found += [shutil.which(f"python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}") or ""]
-    found += [f"/usr/bin/python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}", f"/usr/local/bin/python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}",
-              f"/opt/homebrew/bin/python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}"]
+    found += [
+        f"/usr/bin/python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}",
+        f"/usr/local/bin/python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}",
+        f"/opt/homebrew/bin/python{PYTHON_VERSION[0]}.{PYTHON_VERSION[1]}",
+    ]
     unique = []
     for python in found:
         if python and python not in unique and os.path.isfile(python):
@@ -132,10 +156,14 @@ def find_base_python(preferred: str = "") -> str:
         tried.append(f"{python} ({'Python %d.%d' % version if version else 'no venv/ensurepip'})")
         if python == preferred:
             what = f"Python {version[0]}.{version[1]}" if version else "not a Python with venv and ensurepip"
-            raise SetupError(f"Base Python {preferred} is {what}; the worker's packages need "
-                             f"Python {PYTHON_VERSION[0]}.{PYTHON_VERSION[1]} with venv")
-    raise SetupError(f"no Python {PYTHON_VERSION[0]}.{PYTHON_VERSION[1]} with venv found (tried {', '.join(tried) or 'none'}): "
-                     f"install one, or name it in NeRF Deform's preferences (Base Python)")
+            raise SetupError(
+                f"Base Python {preferred} is {what}; the worker's packages need "
+                f"Python {PYTHON_VERSION[0]}.{PYTHON_VERSION[1]} with venv"
+            )
+    raise SetupError(
+        f"no Python {PYTHON_VERSION[0]}.{PYTHON_VERSION[1]} with venv found (tried {', '.join(tried) or 'none'}): "
+        f"install one, or name it in NeRF Deform's preferences (Base Python)"
+    )
 
 
 def torch_index(build: str, source: str, custom: str = "") -> str:
@@ -195,7 +223,10 @@ def check_environment(python: Path) -> dict:
     problems = [f"missing {', '.join(info['missing'])}"] if info["missing"] else []
     if info["mismatched"]:
         want = pins()
-        problems.append("not at the pinned version: " + ", ".join(f"{k} {v} (wants {want[k]})" for k, v in info["mismatched"].items()))
+        problems.append(
+            "not at the pinned version: "
+            + ", ".join(f"{k} {v} (wants {want[k]})" for k, v in info["mismatched"].items())
+        )
     return {**info, "ok": not problems, "problem": "; ".join(problems)}
 
 
@@ -204,8 +235,15 @@ class SetupJob:
     thread. The state (`progress`, `message`, `log`, `done`, `error`, `python`, `reused`) is read by
     the main thread; nothing here touches Blender's data (the operator sets the preference)."""
 
-    def __init__(self, folder: Path, mode: str = "AUTO", build: str = "CPU", torch_source: str = "AUTO",
-                 torch_index_url: str = "", base_python: str = ""):
+    def __init__(
+        self,
+        folder: Path,
+        mode: str = "AUTO",
+        build: str = "CPU",
+        torch_source: str = "AUTO",
+        torch_index_url: str = "",
+        base_python: str = "",
+    ):
         self.folder = Path(folder)
         self.env = self.folder / ENV_NAME
         self.staging = self.folder / f"{ENV_NAME}.partial"
@@ -331,7 +369,9 @@ class SetupJob:
         first frame does not wait for them (a 270x480 frame: 11 s on a fresh cache, 3 s after)."""
         self._say(start, "compiling the engine's kernels (once)")
         env, _work = worker_client.worker_environment(inherit_pythonpath=False)
-        self._command([python, "-m", f"{PACKAGE_DIR.name}.engine", "compile"], start, 0.98, "compiling the kernels", env=env)
+        self._command(
+            [python, "-m", f"{PACKAGE_DIR.name}.engine", "compile"], start, 0.98, "compiling the kernels", env=env
+        )
 
     def _replace_env(self) -> None:
         """Rename the finished environment into place; the old one is kept until the new one is there."""
@@ -358,8 +398,14 @@ class SetupJob:
             env.pop("PYTHONPATH", None)  # Blender's own paths must not leak into the new environment
             env.pop("PYTHONHOME", None)
         try:
-            proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-                                    start_new_session=(os.name != "nt"))
+            proc = subprocess.Popen(
+                argv,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                env=env,
+                start_new_session=(os.name != "nt"),
+            )
         except OSError as exc:
             raise SetupError(f"{what}: cannot run {argv[0]}: {exc.strerror or exc}") from exc
         with self._lock:
@@ -371,7 +417,7 @@ class SetupJob:
             lines.append(line)
             if line.startswith(("Collecting ", "Processing ")):  # a package from the index, or a local file
                 collected += 1
-                self.progress = start + (end - start) * 0.9 * (1.0 - 0.9 ** collected)
+                self.progress = start + (end - start) * 0.9 * (1.0 - 0.9**collected)
                 self.message = f"{what}: {os.path.basename(line.split(' ', 2)[1])}"
             elif line.startswith("Installing collected packages"):
                 self.progress, self.message = start + (end - start) * 0.92, f"{what}: unpacking"
@@ -382,8 +428,9 @@ class SetupJob:
         if code != 0:
             errors = [l for l in lines if l.startswith("ERROR")] or lines[-1:] or ["no output"]
             if any(sign in l for l in lines for sign in _NETWORK_SIGNS):
-                raise SetupError(f"{what}: the package index cannot be reached (no network?): {errors[-1]} "
-                                 f"(log: {self.log_path})")
+                raise SetupError(
+                    f"{what}: the package index cannot be reached (no network?): {errors[-1]} (log: {self.log_path})"
+                )
             raise SetupError(f"{what} failed: {errors[-1]} (log: {self.log_path})")
 
 
@@ -401,9 +448,11 @@ def existing_environment() -> Path | None:
     return env if env_python(env).exists() else None
 
 
-_MODES = (("AUTO", "Auto", "Reuse a working environment if there is one, else build one"),
-          ("REUSE", "Reuse", "Check the existing environment and use it"),
-          ("REBUILD", "Rebuild", "Build a new environment (the old one stays until the new one works)"))
+_MODES = (
+    ("AUTO", "Auto", "Reuse a working environment if there is one, else build one"),
+    ("REUSE", "Reuse", "Check the existing environment and use it"),
+    ("REBUILD", "Rebuild", "Build a new environment (the old one stays until the new one works)"),
+)
 
 
 class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
@@ -414,16 +463,24 @@ class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     mode: EnumProperty(name="Mode", items=_MODES, default="AUTO")
-    folder: StringProperty(name="Folder", subtype="DIR_PATH", options={"SKIP_SAVE"},
-                           description="Where the environment goes (empty: the extension's user folder)")
+    folder: StringProperty(
+        name="Folder",
+        subtype="DIR_PATH",
+        options={"SKIP_SAVE"},
+        description="Where the environment goes (empty: the extension's user folder)",
+    )
     background: BoolProperty(options={"HIDDEN", "SKIP_SAVE"}, default=False)  # set by invoke: run in a thread
 
     def _settings(self, context) -> dict:
         prefs = addon_preferences(context)
         if prefs is None:
             return {"build": "CPU", "torch_source": "AUTO", "torch_index_url": "", "base_python": ""}
-        return {"build": prefs.worker_build, "torch_source": prefs.torch_source,
-                "torch_index_url": prefs.torch_index_url, "base_python": bpy.path.abspath(prefs.base_python)}
+        return {
+            "build": prefs.worker_build,
+            "torch_source": prefs.torch_source,
+            "torch_index_url": prefs.torch_index_url,
+            "base_python": bpy.path.abspath(prefs.base_python),
+        }
 
     def _job(self, context) -> SetupJob:
         if running_job() is not None:
@@ -447,9 +504,12 @@ class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
         if prefs is not None:
             prefs.worker_python = job.python
         how = "reused" if job.reused else "set up"
-        self.report({"INFO"}, f"Worker environment {how}: torch {job.info.get('torch')} "
-                              f"({'CUDA' if job.info.get('cuda') else 'CPU'}); Worker Python = {job.python}"
-                              + ("" if prefs is not None else " (the add-on is not enabled: no preference to set)"))
+        self.report(
+            {"INFO"},
+            f"Worker environment {how}: torch {job.info.get('torch')} "
+            f"({'CUDA' if job.info.get('cuda') else 'CPU'}); Worker Python = {job.python}"
+            + ("" if prefs is not None else " (the add-on is not enabled: no preference to set)"),
+        )
         return {"FINISHED"}
 
     def execute(self, context):
@@ -471,8 +531,12 @@ class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
 
     def invoke(self, context, event):
         self.background = True
-        return context.window_manager.invoke_props_dialog(self, width=420, title="Set Up the NeRF Worker",
-                                                          confirm_text="Download and Install" if self.mode != "REUSE" else "Reuse")
+        return context.window_manager.invoke_props_dialog(
+            self,
+            width=420,
+            title="Set Up the NeRF Worker",
+            confirm_text="Download and Install" if self.mode != "REUSE" else "Reuse",
+        )
 
     def draw(self, context):
         col = self.layout.column(align=True)

@@ -39,6 +39,8 @@ ARRAYS = ("shape", "index_to_nerf", "index", "density", "color")
 # What a voxel costs while baking: density and weight (float32), colour (3 float32), masks, and the
 # sparse copy of the result (index int32 x3, density, colour).
 BYTES_PER_VOXEL = 4 + 4 + 12 + 2 + 28
+
+
 @dataclass(frozen=True)
 class VolumeGrid:
     """A lattice of cubic voxels: `shape` (nx, ny, nz) and the 4x4 index → NeRF-frame map of voxel centres."""
@@ -60,9 +62,15 @@ class VolumeGrid:
 
 
 def check_resolution(resolution) -> int:
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or not 1 <= resolution <= MAX_RESOLUTION:
-        raise EngineError(f"the volume's resolution must be a whole number of voxels from 1 to {MAX_RESOLUTION} "
-                          f"along the box's longest side, got {resolution!r}")
+    if (
+        isinstance(resolution, bool)
+        or not isinstance(resolution, (int, np.integer))
+        or not 1 <= resolution <= MAX_RESOLUTION
+    ):
+        raise EngineError(
+            f"the volume's resolution must be a whole number of voxels from 1 to {MAX_RESOLUTION} "
+            f"along the box's longest side, got {resolution!r}"
+        )
     return int(resolution)
 
 
@@ -74,20 +82,26 @@ def volume_grid(box: EditRegion, resolution: int, content=None) -> VolumeGrid:
     size = np.asarray(box.size, dtype=np.float64)
     described = " x ".join(f"{x:.3g}" for x in size)
     if not (np.isfinite(size).all() and np.isfinite(box.center).all() and (size > 0).all()):
-        raise EngineError(f"the box to bake ({described} NeRF units, centred at "
-                          f"({', '.join(f'{x:.3g}' for x in box.center)})) must be finite and positive on every axis")
+        raise EngineError(
+            f"the box to bake ({described} NeRF units, centred at "
+            f"({', '.join(f'{x:.3g}' for x in box.center)})) must be finite and positive on every axis"
+        )
     longest = float(size.max())
     if longest < MIN_VOXEL_SIZE:
-        raise EngineError(f"the box to bake ({described} NeRF units) is too small for one voxel: OpenVDB places "
-                          f"voxels from {MIN_VOXEL_SIZE:g} NeRF units; bake a larger box")
+        raise EngineError(
+            f"the box to bake ({described} NeRF units) is too small for one voxel: OpenVDB places "
+            f"voxels from {MIN_VOXEL_SIZE:g} NeRF units; bake a larger box"
+        )
     voxel = longest / resolution
     # A relative slack: a box scaled in Blender arrives through float32 (0.002 as 0.0019999), and the
     # resolution suggested below must itself pass this test.
     if voxel < MIN_VOXEL_SIZE * (1 - 1e-6):
         most = int(longest / MIN_VOXEL_SIZE * (1 + 1e-6))
-        raise EngineError(f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
-                          f"{voxel:.3g}, smaller than the {MIN_VOXEL_SIZE:g} OpenVDB can place: bake it at a "
-                          f"resolution of at most {most}, or a larger box")
+        raise EngineError(
+            f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
+            f"{voxel:.3g}, smaller than the {MIN_VOXEL_SIZE:g} OpenVDB can place: bake it at a "
+            f"resolution of at most {most}, or a larger box"
+        )
     if content is not None:
         # A box far larger than the NeRF (a region scaled by mistake, a cage posed far out) samples the
         # NeRF at a handful of points or none: an empty or meaningless volume, not an error, without this.
@@ -95,11 +109,16 @@ def volume_grid(box: EditRegion, resolution: int, content=None) -> VolumeGrid:
         nerf_side = float((c[1] - c[0]).max())
         if voxel > nerf_side:
             least = math.ceil(longest / nerf_side)
-            advice = (f"bake it at a resolution of at least {least}, or a smaller box" if least <= MAX_RESOLUTION
-                      else "bake a smaller box")
-            raise EngineError(f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
-                              f"{voxel:.3g}, larger than the NeRF's whole box ({nerf_side:.3g} across), which would "
-                              f"fill less than one voxel: {advice}")
+            advice = (
+                f"bake it at a resolution of at least {least}, or a smaller box"
+                if least <= MAX_RESOLUTION
+                else "bake a smaller box"
+            )
+            raise EngineError(
+                f"the box to bake ({described} NeRF units) at resolution {resolution} has voxels of "
+                f"{voxel:.3g}, larger than the NeRF's whole box ({nerf_side:.3g} across), which would "
+                f"fill less than one voxel: {advice}"
+            )
     shape = tuple(int(max(1, math.ceil(s / voxel - 1e-9))) for s in size)
     lo_local = -0.5 * voxel * np.asarray(shape, dtype=np.float64)  # centred on the box
     m = np.eye(4)
@@ -120,8 +139,11 @@ def box_of_bounds(bounds) -> EditRegion:
 
 def check_volume_memory(grid: VolumeGrid) -> None:
     nx, ny, nz = grid.shape
-    check_memory(float(grid.n_voxels) * BYTES_PER_VOXEL, f"a {nx}x{ny}x{nz} volume",
-                 "bake it at a lower resolution, or over a smaller box (an edit region, or the cage's box)")
+    check_memory(
+        float(grid.n_voxels) * BYTES_PER_VOXEL,
+        f"a {nx}x{ny}x{nz} volume",
+        "bake it at a lower resolution, or over a smaller box (an edit region, or the cage's box)",
+    )
 
 
 @dataclass
@@ -136,8 +158,14 @@ class BakedVolume:
 
     def write(self, f) -> None:
         """The .npz into the file object `f` (readable with allow_pickle=False)."""
-        np.savez_compressed(f, shape=np.asarray(self.grid.shape, dtype=np.int64), index_to_nerf=self.grid.index_to_nerf,
-                            index=self.index, density=self.density, color=self.color)
+        np.savez_compressed(
+            f,
+            shape=np.asarray(self.grid.shape, dtype=np.int64),
+            index_to_nerf=self.grid.index_to_nerf,
+            index=self.index,
+            density=self.density,
+            color=self.color,
+        )
 
     def save(self, path) -> None:
         """The .npz written atomically (a temporary file renamed)."""
@@ -159,6 +187,7 @@ def check_baked_arrays(shape, index_to_nerf, index, density, color, where: str) 
     """EngineError naming `where` (a file, a frame) unless the arrays describe a baked volume: a grid of at
     most MAX_RESOLUTION voxels a side, an index -> NeRF map OpenVDB can place, voxel indices inside the
     grid, and finite values (density not negative), one per voxel."""
+
     def refuse(what):
         raise EngineError(f"{where}: {what}; it is not a volume `bake-volume` wrote (bake it again)")
 
@@ -166,26 +195,34 @@ def check_baked_arrays(shape, index_to_nerf, index, density, color, where: str) 
     for name, a in arrays.items():
         kind = "iu" if name in ("shape", "index") else "fiu"
         if not isinstance(a, np.ndarray) or a.dtype.kind not in kind:
-            refuse(f"`{name}` holds {getattr(a, 'dtype', type(a).__name__)}, not "
-                   f"{'integers' if kind == 'iu' else 'numbers'}")
+            refuse(
+                f"`{name}` holds {getattr(a, 'dtype', type(a).__name__)}, not "
+                f"{'integers' if kind == 'iu' else 'numbers'}"
+            )
     n = len(index) if index.ndim else -1
     wanted = {"shape": (3,), "index_to_nerf": (4, 4), "index": (n, 3), "density": (n,), "color": (n, 3)}
     for name, a in arrays.items():
         if a.shape != wanted[name]:
             refuse(f"`{name}` has shape {a.shape}, not {tuple('N' if d == n else d for d in wanted[name])}")
     if (shape < 1).any() or (shape > MAX_RESOLUTION).any():
-        refuse(f"its grid is {' x '.join(str(int(x)) for x in shape)} voxels: each side must be from 1 to {MAX_RESOLUTION}")
+        refuse(
+            f"its grid is {' x '.join(str(int(x)) for x in shape)} voxels: each side must be from 1 to {MAX_RESOLUTION}"
+        )
     if n > int(np.prod(shape.astype(np.int64))):
         refuse(f"it lists {n} voxels, more than its {' x '.join(str(int(x)) for x in shape)} grid holds")
     m = index_to_nerf.astype(np.float64)
     if not np.isfinite(m).all() or not (m[3] == [0, 0, 0, 1]).all():  # exactly: OpenVDB takes no projection
         refuse("`index_to_nerf` is not a finite affine 4x4 matrix")
     if np.abs(m).max() > MAX_COORDINATE:
-        refuse(f"`index_to_nerf` places its voxels beyond {MAX_COORDINATE:g} NeRF units (its largest entry is "
-               f"{np.abs(m).max():.3g})")
-    if abs(np.linalg.det(m[:3, :3])) < MIN_VOXEL_SIZE ** 3:
-        refuse(f"`index_to_nerf` makes voxels smaller than {MIN_VOXEL_SIZE:g} NeRF units (or flat), which OpenVDB "
-               "cannot place")
+        refuse(
+            f"`index_to_nerf` places its voxels beyond {MAX_COORDINATE:g} NeRF units (its largest entry is "
+            f"{np.abs(m).max():.3g})"
+        )
+    if abs(np.linalg.det(m[:3, :3])) < MIN_VOXEL_SIZE**3:
+        refuse(
+            f"`index_to_nerf` makes voxels smaller than {MIN_VOXEL_SIZE:g} NeRF units (or flat), which OpenVDB "
+            "cannot place"
+        )
     if n and ((index < 0).any() or (index >= shape.astype(index.dtype)).any()):
         refuse("voxel indices in `index` lie outside its grid")
     if n > 1:
@@ -215,7 +252,9 @@ def _declared(z: np.lib.npyio.NpzFile, path) -> dict[str, tuple[tuple, np.dtype]
             version = np.lib.format.read_magic(f)
             read_header = getattr(np.lib.format, f"read_array_header_{version[0]}_{version[1]}", None)
             if read_header is None:
-                raise EngineError(f"{path}: `{name}` is in .npy format version {version}, which this reader does not know")
+                raise EngineError(
+                    f"{path}: `{name}` is in .npy format version {version}, which this reader does not know"
+                )
             shape, _fortran, dtype = read_header(f)
         if dtype.hasobject:
             raise EngineError(f"{path}: `{name}` holds Python objects, not numbers; it is not a baked volume")
@@ -235,15 +274,24 @@ def load_baked(path) -> BakedVolume:
         with z:
             declared = _declared(z, path)
             need = sum(float(np.prod(shape, dtype=np.float64)) * dtype.itemsize for shape, dtype in declared.values())
-            check_memory(need, f"baked volume {path}", "this file cannot be a volume `bake-volume` wrote (bake it again)")
+            check_memory(
+                need, f"baked volume {path}", "this file cannot be a volume `bake-volume` wrote (bake it again)"
+            )
             arrays = {k: z[k] for k in ARRAYS}
     except FileNotFoundError:
         raise EngineError(f"baked volume {path} does not exist") from None
     except IsADirectoryError:
         raise EngineError(f"baked volume {path} is a folder") from None
     except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise EngineError(f"{path} is not a baked volume (shape, index_to_nerf, index, density, color): {exc}") from None
+        raise EngineError(
+            f"{path} is not a baked volume (shape, index_to_nerf, index, density, color): {exc}"
+        ) from None
     check_baked_arrays(*(arrays[k] for k in ARRAYS), where=str(path))
     grid = VolumeGrid(tuple(int(s) for s in arrays["shape"]), arrays["index_to_nerf"].astype(np.float64))
-    return BakedVolume(grid, arrays["index"].astype(np.int32), arrays["density"].astype(np.float32),
-                       arrays["color"].astype(np.float32), {})
+    return BakedVolume(
+        grid,
+        arrays["index"].astype(np.int32),
+        arrays["density"].astype(np.float32),
+        arrays["color"].astype(np.float32),
+        {},
+    )

@@ -19,8 +19,9 @@ if backend.HAVE_NUMBA:
     from ..kernel_cache import njit, prange
 
     @njit(parallel=True, cache=True)
-    def map_samples(P, D, tet, located, linear, offset, rotation, rotate, occ, olo, oext, ores, out_p, out_d, keep,
-                    density, scale):
+    def map_samples(
+        P, D, tet, located, linear, offset, rotation, rotate, occ, olo, oext, ores, out_p, out_d, keep, density, scale
+    ):
         """Per sample: the tet's affine (or identity outside every deformed tet), the rotated view
         direction, whether the rest point lies in an occupied cell of the NeRF's grid and (when
         `density`) the density scale |A d| / |d|: how long a unit step along the ray is in rest space
@@ -104,8 +105,6 @@ if backend.HAVE_NUMBA:
                     for x in range(i0[c, 0], i1[c, 0] + 1):
                         mask[x + r * (y + r * z)] = True
 
-
-
     @njit(cache=True)
     def _inv3(a, out):
         """Closed-form inverse of a 3x3 matrix into `out`; returns its determinant (0: left unset)."""
@@ -126,8 +125,20 @@ if backend.HAVE_NUMBA:
         return det
 
     @njit(parallel=True, cache=True)
-    def pose_tets(rest_edges, rest_edges_inv, rest_first, rest_det, deformed, tets,
-                  linear, offset, rotation, forward, det_f, needs_svd):
+    def pose_tets(
+        rest_edges,
+        rest_edges_inv,
+        rest_first,
+        rest_det,
+        deformed,
+        tets,
+        linear,
+        offset,
+        rotation,
+        forward,
+        det_f,
+        needs_svd,
+    ):
         """Per tet of one pose, in one pass: the deformed→rest affine (`linear`, `offset`), the
         rest→deformed one (`forward`, 3x4), det F (deformed / rest volume, signed) and the rotation
         of the polar decomposition of `linear` (scaled Newton iteration, Higham; converges for
@@ -148,7 +159,11 @@ if backend.HAVE_NUMBA:
             for i in range(3):
                 acc = deformed[a, i]
                 for j in range(3):
-                    f = dd[i, 0] * rest_edges_inv[t, 0, j] + dd[i, 1] * rest_edges_inv[t, 1, j] + dd[i, 2] * rest_edges_inv[t, 2, j]
+                    f = (
+                        dd[i, 0] * rest_edges_inv[t, 0, j]
+                        + dd[i, 1] * rest_edges_inv[t, 1, j]
+                        + dd[i, 2] * rest_edges_inv[t, 2, j]
+                    )
                     forward[t, i, j] = f
                     acc -= f * rest_first[t, j]
                 forward[t, i, 3] = acc
@@ -163,7 +178,11 @@ if backend.HAVE_NUMBA:
             for i in range(3):
                 acc = rest_first[t, i]
                 for j in range(3):
-                    v = rest_edges[t, i, 0] * inv[0, j] + rest_edges[t, i, 1] * inv[1, j] + rest_edges[t, i, 2] * inv[2, j]
+                    v = (
+                        rest_edges[t, i, 0] * inv[0, j]
+                        + rest_edges[t, i, 1] * inv[1, j]
+                        + rest_edges[t, i, 2] * inv[2, j]
+                    )
                     m[i, j] = v
                     linear[t, i, j] = v
                 for j in range(3):

@@ -51,8 +51,13 @@ import torch
 
 from .. import backend
 from ..errors import EngineError
-from ..geometry.barycentric import (deformed_to_rest_affines, inversion_from_det, inversion_report, tet_inverses,
-                                   tet_matrices)
+from ..geometry.barycentric import (
+    deformed_to_rest_affines,
+    inversion_from_det,
+    inversion_report,
+    tet_inverses,
+    tet_matrices,
+)
 from ..geometry.locate import TetLocator
 from ..geometry.poses import check_coordinates
 from ..nerf.occupancy import OccupancyGrid
@@ -88,8 +93,17 @@ class CageBend:
     in it); `set_deformed(V)` once per pose.
     """
 
-    def __init__(self, model, rest_vertices, tets, *, rotate_directions: bool = True, density_correction: bool = True,
-                 refine_step: bool = False, max_occupancy_resolution: int = 256):
+    def __init__(
+        self,
+        model,
+        rest_vertices,
+        tets,
+        *,
+        rotate_directions: bool = True,
+        density_correction: bool = True,
+        refine_step: bool = False,
+        max_occupancy_resolution: int = 256,
+    ):
         self.model = model
         self.device = model.device
         self.rest_vertices = np.asarray(rest_vertices, dtype=np.float64)
@@ -124,9 +138,20 @@ class CageBend:
             m = len(self.tets)
             linear, offset, rotation = np.empty((m, 3, 3)), np.empty((m, 3)), np.empty((m, 3, 3))
             forward, det_f, needs_svd = np.empty((m, 3, 4)), np.empty(m), np.empty(m, dtype=np.bool_)
-            bend_kernels.pose_tets(self._rest_edges, self._rest_edges_inv, self._rest_first, self._rest_det,
-                                   np.ascontiguousarray(deformed), self.tets, linear, offset, rotation, forward, det_f,
-                                   needs_svd)
+            bend_kernels.pose_tets(
+                self._rest_edges,
+                self._rest_edges_inv,
+                self._rest_first,
+                self._rest_det,
+                np.ascontiguousarray(deformed),
+                self.tets,
+                linear,
+                offset,
+                rotation,
+                forward,
+                det_f,
+                needs_svd,
+            )
             affine = np.zeros((m, 4, 4))
             affine[:, :3, :3], affine[:, :3, 3], affine[:, 3, 3] = linear, offset, 1.0
             if needs_svd.any():  # inverted tets: the closest proper rotation, by SVD
@@ -138,7 +163,7 @@ class CageBend:
         forward = (tet_matrices(deformed, self.tets) @ self._rest_inverse)[:, :3, :]
         return affine, None, forward, inversion
 
-    def set_deformed(self, deformed_vertices) -> "CageBend":
+    def set_deformed(self, deformed_vertices) -> CageBend:
         """Prepare the map for one pose (same vertex order and tets as the rest cage)."""
         deformed = np.asarray(deformed_vertices, dtype=np.float64)
         if deformed.shape != self.rest_vertices.shape:
@@ -167,8 +192,10 @@ class CageBend:
         # A flat tet holds no volume: locate among the others, and map their indices back.
         located = np.setdiff1d(np.arange(len(self.tets)), bad)
         if len(located) == 0:
-            raise EngineError(f"the pose collapsed the cage: all {len(self.tets)} tets are degenerate (flattened to "
-                              "zero volume), so no sample can be mapped through it; ease the pose")
+            raise EngineError(
+                f"the pose collapsed the cage: all {len(self.tets)} tets are degenerate (flattened to "
+                "zero volume), so no sample can be mapped through it; ease the pose"
+            )
         self.deformed = TetLocator(deformed, self.tets[located], device=self.device)
         self.located_tets = torch.as_tensor(located, dtype=torch.int64, device=self.device)
         self.deformed_bounds = np.stack([deformed.min(0), deformed.max(0)])
@@ -220,10 +247,25 @@ class CageBend:
             keep = torch.empty(len(positions), dtype=torch.bool)
             scale = torch.empty(len(positions) if self.density_correction else 0, dtype=positions.dtype)
             box = occ.aabb.reshape(2, 3)
-            bend_kernels.map_samples(positions.contiguous().numpy(), dirs.contiguous().numpy(), tet.numpy(), self.located_tets.numpy(),
-                         self.linear.numpy(), self.offset.numpy(), self.rotation.numpy(), self.rotate_directions,
-                         occ.mask.numpy(), box[0].numpy(), (box[1] - box[0]).numpy(), np.float32(occ.resolution),
-                         p.numpy(), d.numpy(), keep.numpy(), self.density_correction, scale.numpy())
+            bend_kernels.map_samples(
+                positions.contiguous().numpy(),
+                dirs.contiguous().numpy(),
+                tet.numpy(),
+                self.located_tets.numpy(),
+                self.linear.numpy(),
+                self.offset.numpy(),
+                self.rotation.numpy(),
+                self.rotate_directions,
+                occ.mask.numpy(),
+                box[0].numpy(),
+                (box[1] - box[0]).numpy(),
+                np.float32(occ.resolution),
+                p.numpy(),
+                d.numpy(),
+                keep.numpy(),
+                self.density_correction,
+                scale.numpy(),
+            )
             inside = tet >= 0
         else:
             inside = tet >= 0
@@ -311,11 +353,15 @@ class CageBend:
         n = len(self._cell_ijk)
         model_box = self.model.aabb.detach().cpu().double().reshape(2, 3).numpy()
         if n == 0:
-            return OccupancyGrid.from_mask(torch.as_tensor(model_box, dtype=torch.float32, device=self.device),
-                                           torch.zeros((1, 1, 1), dtype=torch.bool, device=self.device))
+            return OccupancyGrid.from_mask(
+                torch.as_tensor(model_box, dtype=torch.float32, device=self.device),
+                torch.zeros((1, 1, 1), dtype=torch.bool, device=self.device),
+            )
         if self.use_kernels:
             lo_c, hi_c = np.empty((n, 3)), np.empty((n, 3))
-            bend_kernels.cell_images(self._cell_ijk, self._corner_tet, self._rest_lo, self._rest_cell, forward, lo_c, hi_c)
+            bend_kernels.cell_images(
+                self._cell_ijk, self._corner_tet, self._rest_lo, self._rest_cell, forward, lo_c, hi_c
+            )
         else:
             lo_c, hi_c = self._cell_images_torch(forward)
         # A NaN box (a rest tet too thin to invert) would become a wild index in the marking kernel.
@@ -323,8 +369,10 @@ class CageBend:
         if not finite.all():
             lo_c, hi_c = lo_c[finite], hi_c[finite]
         if len(lo_c) == 0:
-            return OccupancyGrid.from_mask(torch.as_tensor(model_box, dtype=torch.float32, device=self.device),
-                                           torch.zeros((1, 1, 1), dtype=torch.bool, device=self.device))
+            return OccupancyGrid.from_mask(
+                torch.as_tensor(model_box, dtype=torch.float32, device=self.device),
+                torch.zeros((1, 1, 1), dtype=torch.bool, device=self.device),
+            )
         # A grid with the NeRF grid's cells, on its lattice, grown to hold every image (up to a size cap).
         cell = self._rest_cell
         first = np.floor((lo_c.min(0) - self._rest_lo) / cell + 1e-6)
@@ -344,7 +392,9 @@ class CageBend:
             bend_kernels.mark_boxes(i0, i1, r, mask)
             mask = torch.from_numpy(mask).reshape(r, r, r)
         else:
-            mask = _mark_boxes_torch(torch.as_tensor(i0, device=self.device), torch.as_tensor(i1, device=self.device), r)
+            mask = _mark_boxes_torch(
+                torch.as_tensor(i0, device=self.device), torch.as_tensor(i1, device=self.device), r
+            )
         box = torch.as_tensor(np.stack([lo, lo + r * cell]), dtype=torch.float32, device=self.device)
         return OccupancyGrid.from_mask(box, mask.to(self.device))
 
@@ -352,8 +402,9 @@ class CageBend:
         """`_cell_images` without numba (CUDA, or numba missing): every corner through every corner tet."""
         dev = self.device
         ijk = torch.as_tensor(self._cell_ijk, device=dev, dtype=torch.float64)
-        corners = torch.as_tensor(self._rest_lo, device=dev) + (ijk[:, None, :] + torch.as_tensor(_CORNERS, device=dev)) \
-            * torch.as_tensor(self._rest_cell, device=dev)  # (n, 8, 3)
+        corners = torch.as_tensor(self._rest_lo, device=dev) + (
+            ijk[:, None, :] + torch.as_tensor(_CORNERS, device=dev)
+        ) * torch.as_tensor(self._rest_cell, device=dev)  # (n, 8, 3)
         tet = torch.as_tensor(self._corner_tet, device=dev)  # (n, 8)
         F = torch.as_tensor(forward, device=dev)
         eye = torch.cat([torch.eye(3, dtype=F.dtype, device=dev), torch.zeros(3, 1, dtype=F.dtype, device=dev)], 1)

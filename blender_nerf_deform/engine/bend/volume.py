@@ -52,9 +52,12 @@ from .baked_volume import BakedVolume, VolumeGrid, box_of_bounds, check_volume_m
 POINTS_PER_BATCH = 1 << 18  # sample points evaluated at once (bounded memory whatever the grid)
 
 _PHI = (1.0 + math.sqrt(5.0)) / 2.0
-VIEW_DIRECTIONS = np.array([[0, s1, s2 * _PHI] for s1 in (-1, 1) for s2 in (-1, 1)]
-                           + [[s1, s2 * _PHI, 0] for s1 in (-1, 1) for s2 in (-1, 1)]
-                           + [[s2 * _PHI, 0, s1] for s1 in (-1, 1) for s2 in (-1, 1)], dtype=np.float64)
+VIEW_DIRECTIONS = np.array(
+    [[0, s1, s2 * _PHI] for s1 in (-1, 1) for s2 in (-1, 1)]
+    + [[s1, s2 * _PHI, 0] for s1 in (-1, 1) for s2 in (-1, 1)]
+    + [[s2 * _PHI, 0, s1] for s1 in (-1, 1) for s2 in (-1, 1)],
+    dtype=np.float64,
+)
 VIEW_DIRECTIONS /= np.linalg.norm(VIEW_DIRECTIONS, axis=1, keepdims=True)
 
 
@@ -72,7 +75,9 @@ def bake_volume(model, grid: VolumeGrid, bend=None, supersample: int = 1, progre
     from outside (the density's gradient says where outside is). `progress(done, total)` is called
     between batches (it may raise to cancel: nothing is kept)."""
     if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) or not 1 <= supersample <= 8:
-        raise EngineError(f"supersample must be a whole number from 1 to 8 (points per voxel along each axis), got {supersample!r}")
+        raise EngineError(
+            f"supersample must be a whole number from 1 to 8 (points per voxel along each axis), got {supersample!r}"
+        )
     check_volume_memory(grid)
     start = time.perf_counter()
     sampler = _VoxelSampler(model, grid, bend, supersample)
@@ -97,12 +102,12 @@ def bake_volume(model, grid: VolumeGrid, bend=None, supersample: int = 1, progre
     color = np.zeros((len(index), 3), dtype=np.float32)
     per_batch = max(1, POINTS_PER_BATCH // (sampler.n_sub * len(VIEW_DIRECTIONS)) * 4)
     for s in range(0, len(index), per_batch):
-        voxels = index[s: s + per_batch]
+        voxels = index[s : s + per_batch]
         sigma, geo, rotation, owner = sampler.sample(voxels, skip_empty=False)
-        rgb = _seen_color(model, geo, rotation, torch.as_tensor(normals[s: s + per_batch])[owner])
+        rgb = _seen_color(model, geo, rotation, torch.as_tensor(normals[s : s + per_batch])[owner])
         summed = torch.zeros(len(voxels), 3).index_add_(0, owner, (rgb * sigma[:, None]).cpu())
         weight = torch.zeros(len(voxels)).index_add_(0, owner, sigma.cpu())
-        color[s: s + per_batch] = (summed / weight.clamp_min(1e-30)[:, None]).clamp(0, 1).numpy()
+        color[s : s + per_batch] = (summed / weight.clamp_min(1e-30)[:, None]).clamp(0, 1).numpy()
         if progress is not None:
             progress(nz + (s + len(voxels)) * max(1, nz // 2) // max(1, len(index)), work)
 
@@ -114,8 +119,14 @@ def bake_volume(model, grid: VolumeGrid, bend=None, supersample: int = 1, progre
     all_index = np.concatenate([index, shell_index]).astype(np.int32)
     all_density = np.concatenate([density[tuple(index.T)], np.zeros(len(shell_index), np.float32)])
     all_color = np.concatenate([color, shell[tuple(shell_index.T)]]).astype(np.float32)
-    stats = {"seconds": time.perf_counter() - start, "points": sampler.n_points, "colored_points": sampler.n_colored,
-             "voxels": grid.n_voxels, "dense_voxels": len(index), "active_voxels": len(all_index)}
+    stats = {
+        "seconds": time.perf_counter() - start,
+        "points": sampler.n_points,
+        "colored_points": sampler.n_colored,
+        "voxels": grid.n_voxels,
+        "dense_voxels": len(index),
+        "active_voxels": len(all_index),
+    }
     return BakedVolume(grid, all_index, all_density, all_color, stats)
 
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..bend.posed import PosedRenderer
 from ..bend.baked_volume import check_resolution, check_volume_memory, is_baked_volume_file, volume_grid
+from ..bend.posed import PosedRenderer
 from ..bend.volume import bake_box
 from ..errors import EngineError
 from ..files import StagedFiles, check_writable
@@ -36,10 +36,14 @@ def check_replaceable(path: Path) -> None:
     if path.is_dir():
         raise EngineError(f"cannot write {path}: it is a folder; move it, or bake into another --out")
     if path.exists() and not path.is_file():
-        raise EngineError(f"cannot write {path}: it is not a file (a pipe, a socket or a device): it is left alone; "
-                          "move it, or bake into another --out")
+        raise EngineError(
+            f"cannot write {path}: it is not a file (a pipe, a socket or a device): it is left alone; "
+            "move it, or bake into another --out"
+        )
     if path.exists() and not is_baked_volume_file(path):
-        raise EngineError(f"{path} exists and is not a baked volume: it is left alone; move it, or bake into another --out")
+        raise EngineError(
+            f"{path} exists and is not a baked volume: it is left alone; move it, or bake into another --out"
+        )
 
 
 def main(args) -> int:
@@ -79,8 +83,10 @@ def main(args) -> int:
             if inversion is not None:
                 bar.write(f"{name}: {inversion.summary()}")
             nx, ny, nz = grid.shape
-            bar.write(f"{name}: {nx}x{ny}x{nz} voxels, {baked.stats['active_voxels']} hold anything, "
-                      f"{baked.stats['seconds']:.1f} s")
+            bar.write(
+                f"{name}: {nx}x{ny}x{nz} voxels, {baked.stats['active_voxels']} hold anything, "
+                f"{baked.stats['seconds']:.1f} s"
+            )
             staged.write(target, baked.write)
         staged.commit()
     print(f"wrote {len(poses)} volume{'s' if len(poses) > 1 else ''} to {out}")

@@ -18,10 +18,17 @@ import sys
 
 import numpy as np
 
-from ..files import check_writable
 from ..errors import EngineError
-from ..geometry.cage import (build_nerf_cage, build_part_cages, check_cage_options, cut_from_region, cut_pins,
-                             part_cut_pins, vertices_outside)
+from ..files import check_writable
+from ..geometry.cage import (
+    build_nerf_cage,
+    build_part_cages,
+    check_cage_options,
+    cut_from_region,
+    cut_pins,
+    part_cut_pins,
+    vertices_outside,
+)
 from ..geometry.cage_refine import refine_cage
 from ..geometry.mesh_io import read_ply, save_cage
 from ..geometry.region import load_region
@@ -46,13 +53,25 @@ def main(args) -> int:
     def build_one(V, F, index=None):
         name = f"mesh {args.mesh}" + (f" (edit region {index + 1})" if index is not None else "")
         own_cut = cut if cut is None or index is None else cut[part == index]
-        cage = build_nerf_cage(V, F, nerf, args.margin, args.threshold, edge_length=args.edge_length,
-                               target_tets=args.target_tets, name=name, cut=own_cut)
+        cage = build_nerf_cage(
+            V,
+            F,
+            nerf,
+            args.margin,
+            args.threshold,
+            edge_length=args.edge_length,
+            target_tets=args.target_tets,
+            name=name,
+            cut=own_cut,
+        )
         if refine_edge is not None:
             before = len(cage.tets)
             cage.vertices, cage.tets = refine_cage(cage.vertices, cage.tets, refine_edge, box)
-            print(f"cage: refined to longest edges <= {refine_edge:g}" + ("" if box is None else " in the box")
-                  + f": {before} -> {len(cage.tets)} tets")
+            print(
+                f"cage: refined to longest edges <= {refine_edge:g}"
+                + ("" if box is None else " in the box")
+                + f": {before} -> {len(cage.tets)} tets"
+            )
         return cage
 
     aabb = nerf.aabb.detach().cpu().double().numpy().reshape(2, 3)
@@ -78,6 +97,8 @@ def main(args) -> int:
     for line in cage.warnings:
         print(f"warning: {line}", file=sys.stderr)
     if cut is not None and cut.any():
-        print(f"cut: {int(cut.sum())} mesh vertices close the region's cut; "
-              + ("not pinned (--no-pin-cut)" if args.no_pin_cut else f"{len(pinned)} cage vertices pinned there"))
+        print(
+            f"cut: {int(cut.sum())} mesh vertices close the region's cut; "
+            + ("not pinned (--no-pin-cut)" if args.no_pin_cut else f"{len(pinned)} cage vertices pinned there")
+        )
     return 0

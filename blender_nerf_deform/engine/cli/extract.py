@@ -1,8 +1,8 @@
 """`extract`: the filtered surface mesh of a NeRF's density, as a PLY with vertex colours.
 
-    python -m blender_nerf_deform.engine extract --nerf CKPT --out MESH.ply
-        [--threshold T] [--resolution R] [--min-volume V] [--decimate FACES]
-        [--region REGION.json [--region ...]] [--pick X Y Z] [--device D]
+python -m blender_nerf_deform.engine extract --nerf CKPT --out MESH.ply
+    [--threshold T] [--resolution R] [--min-volume V] [--decimate FACES]
+    [--region REGION.json [--region ...]] [--pick X Y Z] [--device D]
 """
 
 from __future__ import annotations
@@ -31,8 +31,13 @@ def main(args) -> int:
             check_region_in_box(region, box)
         except EngineError as error:
             raise EngineError(f"--region {path}: {error}") from None
-    options = {"resolution": args.resolution, "threshold": args.threshold, "min_volume": args.min_volume,
-               "decimate": args.decimate, "progress": True}
+    options = {
+        "resolution": args.resolution,
+        "threshold": args.threshold,
+        "min_volume": args.min_volume,
+        "decimate": args.decimate,
+        "progress": True,
+    }
     if regions:
         res = extract_nerf_regions(nerf, regions, pick=args.pick, **options)
     else:
@@ -40,5 +45,7 @@ def main(args) -> int:
     write_ply(args.out, res.vertices, res.faces, res.colors, cut=res.cut, part=res.part)
     print(res.report())
     t = res.timings
-    print(f"grid {t['grid_s']:.1f}s, marching cubes {t['marching_cubes_s']:.1f}s, filter {t['filter_s']:.1f}s -> {args.out}")
+    print(
+        f"grid {t['grid_s']:.1f}s, marching cubes {t['marching_cubes_s']:.1f}s, filter {t['filter_s']:.1f}s -> {args.out}"
+    )
     return 0

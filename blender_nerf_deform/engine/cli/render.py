@@ -21,11 +21,11 @@ from pathlib import Path
 from ..bend.posed import PosedRenderer
 from ..errors import EngineError
 from ..files import check_writable
-from ..png import write_png_rgba
 from ..geometry.mesh_io import load_cage
 from ..geometry.poses import load_poses
 from ..nerf.checkpoint import load_nerf
 from ..nerf.dataset import load_dataset
+from ..png import write_png_rgba
 
 
 def main(args) -> int:

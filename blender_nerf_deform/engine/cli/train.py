@@ -17,12 +17,23 @@ from ..nerf.trainer import run_training
 
 
 def main(args) -> int:
-    summary = run_training(args.data, args.out, max_seconds=args.max_seconds, steps=args.steps, device=args.device,
-                           downscale=getattr(args, "downscale", 1), resume=getattr(args, "resume", False),
-                           checkpoint_every=getattr(args, "checkpoint_every", 120.0),
-                           seed=getattr(args, "seed", 0), overwrite=getattr(args, "overwrite", False),
-                           scene_model=getattr(args, "scene", "auto"), drop_blurry=getattr(args, "drop_blurry", 0.0),
-                           masks=getattr(args, "masks", "auto"))
-    print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s, last batch PSNR "
-          f"{summary.get('psnr', float('nan')):.2f} dB; wrote {summary['checkpoint']}")
+    summary = run_training(
+        args.data,
+        args.out,
+        max_seconds=args.max_seconds,
+        steps=args.steps,
+        device=args.device,
+        downscale=getattr(args, "downscale", 1),
+        resume=getattr(args, "resume", False),
+        checkpoint_every=getattr(args, "checkpoint_every", 120.0),
+        seed=getattr(args, "seed", 0),
+        overwrite=getattr(args, "overwrite", False),
+        scene_model=getattr(args, "scene", "auto"),
+        drop_blurry=getattr(args, "drop_blurry", 0.0),
+        masks=getattr(args, "masks", "auto"),
+    )
+    print(
+        f"trained {summary['steps']} steps in {summary['seconds']:.1f} s, last batch PSNR "
+        f"{summary.get('psnr', float('nan')):.2f} dB; wrote {summary['checkpoint']}"
+    )
     return 0

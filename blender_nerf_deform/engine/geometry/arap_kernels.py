@@ -170,5 +170,3 @@ if backend.HAVE_NUMBA:
             B[v, 0] = x
             B[v, 1] = y
             B[v, 2] = z
-
-

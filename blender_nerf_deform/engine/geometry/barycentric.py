@@ -80,7 +80,9 @@ def deformed_to_rest_affines(rest_vertices: np.ndarray, deformed_vertices: np.nd
     rest_vertices, tets = _as_tets(rest_vertices, tets)
     deformed_vertices = np.asarray(deformed_vertices, dtype=np.float64)
     if deformed_vertices.shape != rest_vertices.shape:
-        raise EngineError(f"deformed cage vertices have shape {deformed_vertices.shape}, the rest cage has {rest_vertices.shape}")
+        raise EngineError(
+            f"deformed cage vertices have shape {deformed_vertices.shape}, the rest cage has {rest_vertices.shape}"
+        )
     return tet_matrices(rest_vertices, tets) @ tet_inverses(deformed_vertices, tets)
 
 
@@ -108,7 +110,9 @@ class InversionReport:
         return f"{self.n_inverted} inverted and {self.n_degenerate} degenerate of {len(self.det)} tets (min det F {self.det.min():.3g})"
 
 
-def inversion_report(rest_vertices: np.ndarray, deformed_vertices: np.ndarray, tets: np.ndarray, tol: float = 1e-6) -> InversionReport:
+def inversion_report(
+    rest_vertices: np.ndarray, deformed_vertices: np.ndarray, tets: np.ndarray, tol: float = 1e-6
+) -> InversionReport:
     """Determinant of the deformation gradient of every tet: the volume ratio deformed/rest, signed.
 
     Inverted tets (det F < -tol) break the barycentric map (a deformed point can

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .barycentric import boundary_faces, signed_volumes  # noqa: F401  (boundary_faces is part of this module's API)
 from ..errors import EngineError
+from .barycentric import boundary_faces, signed_volumes  # noqa: F401  (boundary_faces is part of this module's API)
 
 DEFAULT_MARGIN_FRACTION = 0.03  # of the mesh's bounding-box diagonal, when no margin is given
 
@@ -105,7 +105,12 @@ def _closed_mesh_problem(vertices, faces, merge: bool) -> tuple[int, str] | None
 
 
 def _positive(x) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and bool(np.isfinite(x)) and x > 0
+    return (
+        isinstance(x, (int, float, np.integer, np.floating))
+        and not isinstance(x, bool)
+        and bool(np.isfinite(x))
+        and x > 0
+    )
 
 
 def check_cage_options(margin=None, edge_length=None, target_tets=None, threshold=None) -> None:
@@ -114,8 +119,9 @@ def check_cage_options(margin=None, edge_length=None, target_tets=None, threshol
         raise EngineError(f"--margin must be a positive finite distance (world units), got {margin!r}")
     if edge_length is not None and not _positive(edge_length):
         raise EngineError(f"--edge-length must be a positive finite length (world units), got {edge_length!r}")
-    if target_tets is not None and (not isinstance(target_tets, (int, np.integer)) or isinstance(target_tets, bool)
-                                    or target_tets < 1):
+    if target_tets is not None and (
+        not isinstance(target_tets, (int, np.integer)) or isinstance(target_tets, bool) or target_tets < 1
+    ):
         raise EngineError(f"--target-tets must be a positive number of tets, got {target_tets!r}")
     if threshold is not None and not (_positive(threshold) or threshold == 0):
         raise EngineError(f"--threshold must be a finite density >= 0, got {threshold!r}")
@@ -141,7 +147,9 @@ class Cage:
     warnings: list = field(default_factory=list)  # what the user should know (cages of two regions meeting)
 
 
-def envelope(vertices: np.ndarray, faces: np.ndarray, offset: float, max_cells: int = 160) -> tuple[np.ndarray, np.ndarray, float]:
+def envelope(
+    vertices: np.ndarray, faces: np.ndarray, offset: float, max_cells: int = 160
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Closed surface at signed distance ≈ `offset` outside the mesh: (vertices, faces, grid pitch).
 
     The level is raised by one grid pitch so that, despite the grid's
@@ -240,7 +248,8 @@ def build_cage(
     for attempt in range(runs):
         try:
             CV, CT, clearance = _tetrahedralize_checked(
-                V, ev, ef, eps_abs / ediag, margin, optimize, num_threads, kw, timings)
+                V, ev, ef, eps_abs / ediag, margin, optimize, num_threads, kw, timings
+            )
             break
         except EngineError as error:
             if attempt == runs - 1:
@@ -276,7 +285,9 @@ def _tetrahedralize_checked(V, ev, ef, epsilon, margin, optimize, threads, kw, t
     clearance = cage_clearance(CV, CT, V)
     timings["clearance_check_s"] += time.perf_counter() - t0
     if clearance < margin * (1 - 1e-6):
-        raise EngineError(f"cage clearance {clearance:.4g} is below the margin {margin:.4g} (some of the object lies outside or too close)")
+        raise EngineError(
+            f"cage clearance {clearance:.4g} is below the margin {margin:.4g} (some of the object lies outside or too close)"
+        )
     return CV, CT, clearance
 
 
@@ -285,13 +296,25 @@ def cage_clearance(cage_vertices: np.ndarray, tets: np.ndarray, points: np.ndarr
     import igl
 
     bf = boundary_faces(tets)
-    sd = igl.signed_distance(np.asarray(points, dtype=np.float64), cage_vertices, bf, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)[0]
+    sd = igl.signed_distance(
+        np.asarray(points, dtype=np.float64), cage_vertices, bf, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER
+    )[0]
     return float((-sd).min())
 
 
-def build_nerf_cage(vertices: np.ndarray, faces: np.ndarray, nerf, margin: float | None = None,
-                    threshold: float | None = None, *, edge_length: float | None = None,
-                    target_tets: int | None = None, name: str = "mesh", log=print, cut: np.ndarray | None = None) -> Cage:
+def build_nerf_cage(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    nerf,
+    margin: float | None = None,
+    threshold: float | None = None,
+    *,
+    edge_length: float | None = None,
+    target_tets: int | None = None,
+    name: str = "mesh",
+    log=print,
+    cut: np.ndarray | None = None,
+) -> Cage:
     """The cage of a NeRF's extracted mesh (what `cage` writes and the add-on's Build Cage stores).
 
     The margin (default 3% of the mesh's diagonal) is widened, up to three times by 1.5x,
@@ -328,7 +351,9 @@ def build_nerf_cage(vertices: np.ndarray, faces: np.ndarray, nerf, margin: float
         soft = density(ev) > 0.1 * threshold if len(ev) else np.zeros(1, dtype=bool)
         if soft.mean() <= 0.005 or attempt == 3:
             break
-        log(f"cage: {soft.mean():.1%} of the envelope at margin {margin:.4g} still has density > {0.1 * threshold:g}; widening")
+        log(
+            f"cage: {soft.mean():.1%} of the envelope at margin {margin:.4g} still has density > {0.1 * threshold:g}; widening"
+        )
         margin *= 1.5
     return build_cage(V, F, margin, edge_length=edge_length, target_tets=target_tets, check_mesh=False)
 
@@ -357,7 +382,9 @@ def cut_pins(cage_vertices: np.ndarray, mesh_vertices: np.ndarray, cut: np.ndarr
     C = np.asarray(cage_vertices, dtype=np.float64)
     d_any = cKDTree(M).query(C)[0]
     d_cut = cKDTree(M[np.asarray(cut, dtype=bool)]).query(C)[0]
-    return np.flatnonzero((d_cut <= d_any + 0.5 * float(margin)) & (d_cut <= PIN_DEPTH * float(margin))).astype(np.int64)
+    return np.flatnonzero((d_cut <= d_any + 0.5 * float(margin)) & (d_cut <= PIN_DEPTH * float(margin))).astype(
+        np.int64
+    )
 
 
 def cut_from_region(mesh_vertices: np.ndarray, region) -> np.ndarray:
@@ -399,8 +426,13 @@ def build_part_cages(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray,
     for _v, _t, c in cages:
         for k, v in c.timings.items():
             timings[k] = timings.get(k, 0) + v
-    merged = Cage(vertices=np.concatenate([c[0] for c in cages]), tets=np.concatenate([c[1] for c in cages]),
-                  margin=min(c[2].margin for c in cages), clearance=min(c[2].clearance for c in cages), timings=timings)
+    merged = Cage(
+        vertices=np.concatenate([c[0] for c in cages]),
+        tets=np.concatenate([c[1] for c in cages]),
+        margin=min(c[2].margin for c in cages),
+        clearance=min(c[2].clearance for c in cages),
+        timings=timings,
+    )
     labels = np.concatenate(labels)
     merged.warnings = overlapping_pieces(merged.vertices, merged.tets, labels)
     return merged, labels
@@ -423,13 +455,21 @@ def overlapping_pieces(vertices: np.ndarray, tets: np.ndarray, part: np.ndarray)
             tid, _ = locate(vertices[part == j], vertices, tets[tet_part == i])
             inside += int((tid >= 0).sum())
             if inside:
-                lines.append(f"the cages of edit regions {i + 1} and {j + 1} overlap ({inside} cage vertices of one "
-                             "lie inside the other): renders there are ambiguous; move the regions further apart")
+                lines.append(
+                    f"the cages of edit regions {i + 1} and {j + 1} overlap ({inside} cage vertices of one "
+                    "lie inside the other): renders there are ambiguous; move the regions further apart"
+                )
     return lines
 
 
-def part_cut_pins(cage_vertices: np.ndarray, cage_part: np.ndarray, mesh_vertices: np.ndarray, mesh_part: np.ndarray,
-                  cut: np.ndarray | None, margin: float) -> np.ndarray:
+def part_cut_pins(
+    cage_vertices: np.ndarray,
+    cage_part: np.ndarray,
+    mesh_vertices: np.ndarray,
+    mesh_part: np.ndarray,
+    cut: np.ndarray | None,
+    margin: float,
+) -> np.ndarray:
     """`cut_pins` part by part: a cage vertex is pinned only by its own object's cut."""
     if cut is None or not np.any(cut):
         return np.zeros(0, dtype=np.int64)

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .barycentric import tet_inverses
 from ..errors import EngineError
+from .barycentric import tet_inverses
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
@@ -47,7 +47,7 @@ class Bisection:
         out = np.empty((len(self.vertices),) + values.shape[1:])
         out[:n_old] = values
         for start, stop in zip(self.pass_starts, list(self.pass_starts[1:]) + [len(self.vertices)]):
-            ends = self.vertex_parents[start - n_old:stop - n_old]
+            ends = self.vertex_parents[start - n_old : stop - n_old]
             out[start:stop] = 0.5 * (out[ends[:, 0]] + out[ends[:, 1]])
         return out
 
@@ -56,8 +56,12 @@ def _check_box(box) -> np.ndarray | None:
     if box is None:
         return None
     box = np.asarray(box, dtype=np.float64)
-    if box.ndim not in (2, 3) or box.shape[-2:] != (2, 3) or not np.isfinite(box).all() \
-            or not (box[..., 1, :] >= box[..., 0, :]).all():
+    if (
+        box.ndim not in (2, 3)
+        or box.shape[-2:] != (2, 3)
+        or not np.isfinite(box).all()
+        or not (box[..., 1, :] >= box[..., 0, :]).all()
+    ):
         raise EngineError(f"cage refinement box must be (lo xyz, hi xyz) with hi >= lo, got {box.tolist()}")
     return box.reshape(-1, 2, 3)
 
@@ -77,8 +81,9 @@ def bisect(vertices: np.ndarray, tets: np.ndarray, max_edge: float, box=None, ma
         raise EngineError(f"refine_cage: need (N,3) vertices and (M,4) tets, got {V.shape} and {T.shape}")
     if not np.isfinite(V).all() or T.min() < 0 or T.max() >= len(V):
         raise EngineError("refine_cage: vertices must be finite and tets index them")
-    if not (isinstance(max_edge, (int, float)) and not isinstance(max_edge, bool) and np.isfinite(max_edge)
-            and max_edge > 0):
+    if not (
+        isinstance(max_edge, (int, float)) and not isinstance(max_edge, bool) and np.isfinite(max_edge) and max_edge > 0
+    ):
         raise EngineError(f"cage refinement edge length must be a positive number, got {max_edge!r}")
     boxes = _check_box(box)
     parent = np.arange(len(T))
@@ -136,15 +141,18 @@ def bisect(vertices: np.ndarray, tets: np.ndarray, max_edge: float, box=None, ma
         T = np.concatenate([T[~cut], a, b])
         parent = np.concatenate([parent[~cut], parent[cut], parent[cut]])
     else:
-        raise EngineError(f"cage refinement did not finish in {max_passes} passes (max edge {max_edge:g} too small "
-                          "for the cage)")
+        raise EngineError(
+            f"cage refinement did not finish in {max_passes} passes (max edge {max_edge:g} too small for the cage)"
+        )
     allv = parts[0] if len(parts) == 1 else np.concatenate(parts)
-    return Bisection(allv, T, parent, np.concatenate(vertex_parents).astype(np.int64),
-                     np.asarray(pass_starts, dtype=np.int64))
+    return Bisection(
+        allv, T, parent, np.concatenate(vertex_parents).astype(np.int64), np.asarray(pass_starts, dtype=np.int64)
+    )
 
 
-def refine_cage(vertices: np.ndarray, tets: np.ndarray, max_edge: float, box=None,
-                max_passes: int = 64) -> tuple[np.ndarray, np.ndarray]:
+def refine_cage(
+    vertices: np.ndarray, tets: np.ndarray, max_edge: float, box=None, max_passes: int = 64
+) -> tuple[np.ndarray, np.ndarray]:
     """A finer cage where a pose will vary fast: `bisect`'s (vertices, tets).
 
     A ray-bent frame is the piecewise-affine map of the cage, so where a pose's deformation
@@ -155,8 +163,9 @@ def refine_cage(vertices: np.ndarray, tets: np.ndarray, max_edge: float, box=Non
     return b.vertices, b.tets
 
 
-def refine_around(vertices: np.ndarray, tets: np.ndarray, points: np.ndarray, margin: float,
-                  max_edge: float | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+def refine_around(
+    vertices: np.ndarray, tets: np.ndarray, points: np.ndarray, margin: float, max_edge: float | None = None
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """`refine_cage` in the box of `points` (the surface vertices the user will stretch) widened by
     the cage's `margin` and the edge length, so the tets wrapping them are refined too. `max_edge`
     None: half the cage's median tet edge (a smooth stretch across a band needs a few tets across it;
@@ -231,8 +240,9 @@ def _shared_by_pairs(sets: list[np.ndarray]) -> dict[tuple[int, int], np.ndarray
     return out
 
 
-def shared_vertices(tets: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray, handles: list,
-                    pinned_points=None, cage_pins=None) -> np.ndarray:
+def shared_vertices(
+    tets: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray, handles: list, pinned_points=None, cage_pins=None
+) -> np.ndarray:
     """The cage vertices (sorted) that two regions lean on: two handles' (surface vertex indices), or
     a handle's and the still ones' (the pinned surface vertices and the cut's pinned cage vertices)."""
     pairs = _shared_by_pairs(_region_vertices(tets, tet_ids, weights, handles, pinned_points, cage_pins))
@@ -261,8 +271,9 @@ class Separation:
         return self.bisection.tets
 
 
-def reembed(bisection: Bisection, old_tets: np.ndarray, old_vertices: np.ndarray, tet_ids: np.ndarray,
-            weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def reembed(
+    bisection: Bisection, old_tets: np.ndarray, old_vertices: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The embedding of points in the refined cage: the same rest positions, each point in one of
     the tets its old tet was split into (so a multi-part cage's points stay in their own part);
     points of tets left whole keep their weights exactly."""
@@ -302,9 +313,17 @@ def _refined(V, T, tet_ids, weights, max_edge, shared, pad_length, cage_pins):
     return bisection, new_ids, new_weights, new_pins
 
 
-def separate_regions(vertices: np.ndarray, tets: np.ndarray, tet_ids: np.ndarray, weights: np.ndarray,
-                     handles: list, pinned_points=None, cage_pins=None, pad: float = SEPARATION_PAD,
-                     edge: float = SEPARATION_EDGE) -> Separation | None:
+def separate_regions(
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    tet_ids: np.ndarray,
+    weights: np.ndarray,
+    handles: list,
+    pinned_points=None,
+    cage_pins=None,
+    pad: float = SEPARATION_PAD,
+    edge: float = SEPARATION_EDGE,
+) -> Separation | None:
     """Refine the cage around the cage vertices that two regions lean on, so that each region's
     surface can follow its own transform: a vertex shared by two handles' tets must serve both, and
     a fold-free solve then leaves the surface off its targets (issue 30: 2-3 % of the region's size

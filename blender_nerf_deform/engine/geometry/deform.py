@@ -94,7 +94,9 @@ def check_disjoint(regions: list, n: int, names: list[str]) -> list[np.ndarray]:
     return out
 
 
-def regions_to_cage(embedding, surface_regions: list, n_cage_vertices: int, names: list[str] | None = None) -> list[np.ndarray]:
+def regions_to_cage(
+    embedding, surface_regions: list, n_cage_vertices: int, names: list[str] | None = None
+) -> list[np.ndarray]:
     """Map regions of the extracted mesh's vertices to regions of cage vertices.
 
     A cage vertex joins a region when that region's selected surface vertices
@@ -187,6 +189,7 @@ def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, pow
 # tools/bench/geometry_arap.py runs them side by side.
 # ---------------------------------------------------------------------------
 
+
 class ElementsEnergy:
     """ARAP's elements energy on a tet mesh, what both solvers share (ArapDeformer here,
     surface_arap.SurfaceArap): libigl's cotangent weights per tet edge, the rest edge vectors, the
@@ -202,8 +205,9 @@ class ElementsEnergy:
         self.W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)  # (M, 6)
         self.E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])  # (M, 6, 3) rest edge vectors
         i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self.W.ravel()
-        self.L = sp.coo_matrix((np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))),
-                               shape=(n, n)).tocsr()
+        self.L = sp.coo_matrix(
+            (np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))), shape=(n, n)
+        ).tocsr()
         self.slots = np.argsort(T.ravel(), kind="stable")
         self.slot_start = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(np.bincount(T.ravel(), minlength=n), out=self.slot_start[1:])
@@ -239,7 +243,15 @@ class ArapDeformer:
 
     ENERGIES = ("elements", "spokes", "spokes_and_rims")
 
-    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, handles: list, pins: list | None = None, energy: str = "elements", backend: str = "auto"):
+    def __init__(
+        self,
+        rest_vertices: np.ndarray,
+        tets: np.ndarray,
+        handles: list,
+        pins: list | None = None,
+        energy: str = "elements",
+        backend: str = "auto",
+    ):
         V = np.ascontiguousarray(rest_vertices, dtype=np.float64)
         T = np.ascontiguousarray(tets, dtype=np.int64)
         pins = list(pins or [])
@@ -295,13 +307,20 @@ class ArapDeformer:
         n_parts, part = connected_components(L, directed=False)
         loose = np.setdiff1d(np.arange(n_parts), part[self.b])
         if len(loose):
-            raise EngineError(f"ARAP: {len(loose)} connected part(s) of the cage ({int(np.isin(part, loose).sum())} vertices) hold no handle or pinned vertex")
+            raise EngineError(
+                f"ARAP: {len(loose)} connected part(s) of the cage ({int(np.isin(part, loose).sum())} vertices) hold no handle or pinned vertex"
+            )
         self._lu = None
         if len(self._free):
             try:
                 # Symmetric positive definite: a symmetric fill-reducing ordering and diagonal
                 # pivots keep the factors about half the size of SuperLU's default (COLAMD).
-                self._lu = splu(Lf[:, self._free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
+                self._lu = splu(
+                    Lf[:, self._free].tocsc(),
+                    permc_spec="MMD_AT_PLUS_A",
+                    diag_pivot_thresh=0.1,
+                    options=dict(SymmetricMode=True),
+                )
             except RuntimeError as e:
                 raise EngineError(f"ARAP system is singular ({e}); is the cage degenerate?") from e
         self._B = np.empty((n, 3))
@@ -335,11 +354,15 @@ class ArapDeformer:
     def _iterate(self, bc: np.ndarray, U: np.ndarray, iterations: int, tol: float | None):
         step = np.inf
         it = 0
-        fixed_rhs = self._Lfb @ bc if self.backend == "numba" else None  # the constrained vertices' pull on the free ones
+        fixed_rhs = (
+            self._Lfb @ bc if self.backend == "numba" else None
+        )  # the constrained vertices' pull on the free ones
         for it in range(1, iterations + 1):
             U_new = self._one_iteration(bc, U, fixed_rhs)
             if not np.isfinite(U_new).all():
-                raise EngineError(f"ARAP diverged (non-finite positions after {it} iterations); check the handles' transforms")
+                raise EngineError(
+                    f"ARAP diverged (non-finite positions after {it} iterations); check the handles' transforms"
+                )
             step = float(np.abs(U_new - U).max()) / self.diag
             U = U_new
             if tol is not None and step < tol:
@@ -352,8 +375,14 @@ class ArapDeformer:
             self._blend = PieceBlend(self.rest, tet_components(len(self.rest), self.tets), self.handles + self.pins)
         return self._blend([_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins))
 
-    def solve(self, transforms: list, max_iter: int = 50, tol: float = 1e-4, initial: np.ndarray | None = None,
-              strict: bool = False) -> ArapResult:
+    def solve(
+        self,
+        transforms: list,
+        max_iter: int = 50,
+        tol: float = 1e-4,
+        initial: np.ndarray | None = None,
+        strict: bool = False,
+    ) -> ArapResult:
         """Iterate from `initial` (default: the linear blend of the handles' affines, a deterministic
         start that is already right for rigid motions) until converged or `max_iter` iterations.
         Hard constraints know nothing of orientation: a strong bend on a coarse cage can invert
@@ -366,7 +395,9 @@ class ArapDeformer:
         U[self.b] = bc
         U, it, step = self._iterate(bc, U, max_iter, tol)
         if strict and step >= tol:
-            raise EngineError(f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, tolerance {tol:.0e})")
+            raise EngineError(
+                f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, tolerance {tol:.0e})"
+            )
         res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0)
         self.U = U
         return res

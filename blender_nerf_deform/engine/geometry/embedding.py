@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .barycentric import _as_tets, tet_inverses
 from ..errors import EngineError
+from .barycentric import _as_tets, tet_inverses
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,14 @@ class Embedding:
         return np.bincount(self.corners[idx].ravel(), weights=self.weights[idx].ravel(), minlength=n_cage_vertices)
 
 
-def locate(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, cells_per_tet: float = 1.0, eps: float = 1e-10, chunk: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
+def locate(
+    points: np.ndarray,
+    vertices: np.ndarray,
+    tets: np.ndarray,
+    cells_per_tet: float = 1.0,
+    eps: float = 1e-10,
+    chunk: int = 1 << 18,
+) -> tuple[np.ndarray, np.ndarray]:
     """(tet index or -1, (N,4) barycentric coords) of each point: uniform grid of tet lists, numpy only."""
     V, T = _as_tets(vertices, tets)
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -66,7 +73,7 @@ def locate(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, cells_per
     lam = np.einsum("nij,nj->ni", G[:, :, :3], centre) + G[:, :, 3]
     reach = np.abs(G[:, :, :3]) @ half
     keep = (lam + reach).min(1) >= -eps
-    cell = ((ijk[keep, 2] * res[1] + ijk[keep, 1]) * res[0] + ijk[keep, 0])
+    cell = (ijk[keep, 2] * res[1] + ijk[keep, 1]) * res[0] + ijk[keep, 0]
     owner = owner[keep]
     order = np.argsort(cell, kind="stable")
     cell_tets = owner[order]
@@ -126,8 +133,9 @@ def embed_points(points: np.ndarray, rest_vertices: np.ndarray, tets: np.ndarray
     return Embedding(tet_ids=tid, corners=T[tid], weights=w, n_outside=int(len(missing)))
 
 
-def embed_points_by_part(points: np.ndarray, point_part: np.ndarray, rest_vertices: np.ndarray, tets: np.ndarray,
-                         vertex_part: np.ndarray) -> Embedding:
+def embed_points_by_part(
+    points: np.ndarray, point_part: np.ndarray, rest_vertices: np.ndarray, tets: np.ndarray, vertex_part: np.ndarray
+) -> Embedding:
     """Embed each part's points in that part's own cage only (cage.build_part_cages): where two
     objects' cages meet, a point of one is never attached to the other's tets."""
     V, T = _as_tets(rest_vertices, tets)

@@ -32,8 +32,8 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -78,8 +78,10 @@ class ExtractResult:
             f"volume {sum(c.volume for c in self.kept):.4g}",
         ]
         if self.cut is not None and self.cut.any():
-            lines.append(f"closed along the cut: {int(self.cut.sum())} vertices where the region or the box cuts "
-                         "the scene (the cage pins them)")
+            lines.append(
+                f"closed along the cut: {int(self.cut.sum())} vertices where the region or the box cuts "
+                "the scene (the cage pins them)"
+            )
         if self.dropped:
             big = max(self.dropped, key=lambda c: c.volume)
             lines.append(
@@ -104,22 +106,30 @@ def _is_number(x) -> bool:
 
 def check_extract_options(resolution=None, threshold=None, min_volume=None, decimate=None) -> None:
     """EngineError for options extraction cannot use (None means the default), before any sampling."""
-    if resolution is not None and (not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool)
-                                   or not 2 <= resolution <= MAX_RESOLUTION):
+    if resolution is not None and (
+        not isinstance(resolution, (int, np.integer))
+        or isinstance(resolution, bool)
+        or not 2 <= resolution <= MAX_RESOLUTION
+    ):
         raise EngineError(f"--resolution must be an integer from 2 to {MAX_RESOLUTION}, got {resolution!r}")
     if threshold is not None and not (_is_number(threshold) and np.isfinite(threshold) and threshold >= 0):
         raise EngineError(f"--threshold must be a finite density >= 0, got {threshold!r}")
     if min_volume is not None and not (_is_number(min_volume) and np.isfinite(min_volume) and min_volume >= 0):
         raise EngineError(f"--min-volume must be a finite volume >= 0, got {min_volume!r}")
-    if decimate is not None and (not isinstance(decimate, (int, np.integer)) or isinstance(decimate, bool) or decimate < 4):
+    if decimate is not None and (
+        not isinstance(decimate, (int, np.integer)) or isinstance(decimate, bool) or decimate < 4
+    ):
         raise EngineError(f"--decimate must be a face count of at least 4, got {decimate!r}")
 
 
 def check_grid_memory(resolution: int, shape=None) -> None:
     """EngineError, before sampling, when the grid (`resolution`^3 samples, or `shape`) cannot fit in memory."""
     count = float(np.prod(shape)) if shape is not None else float(resolution) ** 3
-    check_memory(BYTES_PER_SAMPLE * count, f"extraction at resolution {resolution} ({int(count)} density samples)",
-                 "lower the resolution")
+    check_memory(
+        BYTES_PER_SAMPLE * count,
+        f"extraction at resolution {resolution} ({int(count)} density samples)",
+        "lower the resolution",
+    )
 
 
 def _bounds(bounds) -> np.ndarray:
@@ -163,8 +173,9 @@ def region_lattice(region, resolution: int) -> Lattice:
     return Lattice(region.to_world(-region.half), region.rotation * h, shape)
 
 
-def sample_lattice(density_fn: DensityFn, lattice: Lattice, chunk: int = 1 << 18, progress: bool = False,
-                   clip_bounds=None) -> tuple[np.ndarray, np.ndarray | None]:
+def sample_lattice(
+    density_fn: DensityFn, lattice: Lattice, chunk: int = 1 << 18, progress: bool = False, clip_bounds=None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """(grid (n0, n1, n2) float32 densities at the lattice's points, mask of the samples outside
     `clip_bounds` (their density is not asked: they count as empty), or None without clipping)."""
     nx, ny, nz = lattice.shape
@@ -198,7 +209,9 @@ def sample_lattice(density_fn: DensityFn, lattice: Lattice, chunk: int = 1 << 18
     return grid, outside
 
 
-def sample_grid(density_fn: DensityFn, bounds, resolution: int = DEFAULT_RESOLUTION, chunk: int = 1 << 18, progress: bool = False) -> np.ndarray:
+def sample_grid(
+    density_fn: DensityFn, bounds, resolution: int = DEFAULT_RESOLUTION, chunk: int = 1 << 18, progress: bool = False
+) -> np.ndarray:
     """(R, R, R) float32 densities at the grid's corner points, x fastest-varying last (index [i, j, k] = x_i, y_j, z_k)."""
     if resolution < 2 or resolution > MAX_RESOLUTION:
         raise EngineError(f"grid resolution must be between 2 and {MAX_RESOLUTION}, got {resolution}")
@@ -221,21 +234,27 @@ def pick_component(grid: np.ndarray, threshold: float, lattice: Lattice, point) 
     p = np.asarray(point, dtype=np.float64).ravel()
     where = f"({p[0]:.3g}, {p[1]:.3g}, {p[2]:.3g})"
     if np.any(q < -r) or np.any(q > shape - 1 + r):
-        raise EngineError(f"the pick point {where} lies outside the sampled region: put it on the object, inside "
-                          "the edit region and the NeRF's box")
+        raise EngineError(
+            f"the pick point {where} lies outside the sampled region: put it on the object, inside "
+            "the edit region and the NeRF's box"
+        )
     lo = np.clip(np.floor(q).astype(int) - r, 0, shape - 1)
     hi = np.clip(np.ceil(q).astype(int) + r, 0, shape - 1) + 1
-    window = grid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    window = grid[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     dense = np.argwhere(window > threshold)
     if len(dense) == 0:
         radius = float(r * lattice.spacing.max())
-        raise EngineError(f"the pick point {where} is in empty space: the largest density within {radius:.3g} of it "
-                          f"is {float(window.max()):.4g}, not above the threshold {threshold:g}; put it on the object")
+        raise EngineError(
+            f"the pick point {where} is in empty space: the largest density within {radius:.3g} of it "
+            f"is {float(window.max()):.4g}, not above the threshold {threshold:g}; put it on the object"
+        )
     seed = lo + dense[np.argmin(np.linalg.norm((dense + lo) - q, axis=1))]
     labels, count = ndimage.label(grid > threshold)
     mask = labels == labels[tuple(seed)]
-    line = (f"picked the part connected to {where}: {int(mask.sum())} of {int((labels > 0).sum())} dense samples "
-            f"({count - 1} other part(s) left out)")
+    line = (
+        f"picked the part connected to {where}: {int(mask.sum())} of {int((labels > 0).sum())} dense samples "
+        f"({count - 1} other part(s) left out)"
+    )
     return mask, line
 
 
@@ -340,9 +359,11 @@ def extract_mesh(
         lattice = region_lattice(region, resolution)
         grid, outside = sample_lattice(density_fn, lattice, progress=progress, clip_bounds=b)
         where = f"the {region.describe()}"
-        notes.append(f"{region.describe()}: {'x'.join(str(n) for n in lattice.shape)} samples, spacing "
-                     f"{float(lattice.spacing.max()):.3g}" + (f"; {outside.mean():.0%} of it outside the NeRF's box"
-                                                            if outside.any() else ""))
+        notes.append(
+            f"{region.describe()}: {'x'.join(str(n) for n in lattice.shape)} samples, spacing "
+            f"{float(lattice.spacing.max()):.3g}"
+            + (f"; {outside.mean():.0%} of it outside the NeRF's box" if outside.any() else "")
+        )
     else:
         if grid is None:
             grid = sample_grid(density_fn, b, resolution, progress=progress)
@@ -367,8 +388,9 @@ def extract_mesh(
         grid = np.where(outside, np.float32(empty), grid)
     padded = _off_the_level(np.pad(grid, 1, mode="constant", constant_values=empty), threshold)
     verts_index, faces, _, _ = marching_cubes(padded, level=threshold)
-    forced_empty = np.pad(outside if outside is not None else np.zeros(grid.shape, dtype=bool), 1,
-                          mode="constant", constant_values=True)
+    forced_empty = np.pad(
+        outside if outside is not None else np.zeros(grid.shape, dtype=bool), 1, mode="constant", constant_values=True
+    )
     cut = _cut_vertices(verts_index, forced_empty)
     # Vertices stay as marching cubes shares them (one per grid edge), none merged by position:
     # near a sample at the level several lie within float precision of each other, and merging
@@ -393,7 +415,11 @@ def extract_mesh(
 
     def describe(c):
         fm = labels == c
-        return Component(volume=float(avol[c]), faces=int(fm.sum()), centroid=tuple(float(x) for x in verts[faces[fm]].reshape(-1, 3).mean(0)))
+        return Component(
+            volume=float(avol[c]),
+            faces=int(fm.sum()),
+            centroid=tuple(float(x) for x in verts[faces[fm]].reshape(-1, 3).mean(0)),
+        )
 
     kept = [describe(c) for c in np.flatnonzero(keep_comp)]
     dropped_ids = np.flatnonzero(~keep_comp)
@@ -428,8 +454,20 @@ def extract_mesh(
         normals = trimesh.Trimesh(vertices=verts, faces=faces, process=False).vertex_normals
         colors = np.clip(np.asarray(colour_fn(verts, -normals), dtype=np.float64), 0.0, 1.0)
         timings["colour_s"] = time.perf_counter() - t0
-    return ExtractResult(verts, faces, colors, kept, dropped, len(dropped_ids), float(avol[dropped_ids].sum()),
-                         float(threshold), float(min_volume), timings, cut=cut, notes=notes)
+    return ExtractResult(
+        verts,
+        faces,
+        colors,
+        kept,
+        dropped,
+        len(dropped_ids),
+        float(avol[dropped_ids].sum()),
+        float(threshold),
+        float(min_volume),
+        timings,
+        cut=cut,
+        notes=notes,
+    )
 
 
 # ------------------------------------------------------------------ NeRF glue
@@ -465,9 +503,16 @@ def colour_fn_of(nerf, chunk: int = 1 << 16) -> ColourFn:
     return fn
 
 
-def extract_nerf_mesh(nerf, resolution: int | None = None, threshold: float | None = None,
-                      min_volume: float | None = None, decimate: int | None = None, progress: bool = False,
-                      region=None, pick=None) -> ExtractResult:
+def extract_nerf_mesh(
+    nerf,
+    resolution: int | None = None,
+    threshold: float | None = None,
+    min_volume: float | None = None,
+    decimate: int | None = None,
+    progress: bool = False,
+    region=None,
+    pick=None,
+) -> ExtractResult:
     """The surface of a loaded NeRF over its bounds (its inner box when unbounded) or over an edit
     region within them, floaters dropped, only the part connected to `pick` when given, vertex
     colours from the NeRF (what `extract` writes and the add-on's Extract Mesh imports). None means
@@ -487,13 +532,24 @@ def extract_nerf_mesh(nerf, resolution: int | None = None, threshold: float | No
     )
 
 
-def extract_nerf_regions(nerf, regions: list, pick=None, resolution: int | None = None, threshold: float | None = None,
-                         min_volume: float | None = None, decimate: int | None = None,
-                         progress: bool = False) -> ExtractResult:
+def extract_nerf_regions(
+    nerf,
+    regions: list,
+    pick=None,
+    resolution: int | None = None,
+    threshold: float | None = None,
+    min_volume: float | None = None,
+    decimate: int | None = None,
+    progress: bool = False,
+) -> ExtractResult:
     """One surface per edit region of a loaded NeRF, in one mesh (`extract_regions`)."""
-    return extract_regions(lambda region, point: extract_nerf_mesh(nerf, resolution, threshold, min_volume, decimate,
-                                                                   progress, region=region, pick=point),
-                           regions, pick)
+    return extract_regions(
+        lambda region, point: extract_nerf_mesh(
+            nerf, resolution, threshold, min_volume, decimate, progress, region=region, pick=point
+        ),
+        regions,
+        pick,
+    )
 
 
 def extract_regions(extract_one, regions: list, pick=None) -> ExtractResult:
@@ -511,8 +567,10 @@ def extract_regions(extract_one, regions: list, pick=None) -> ExtractResult:
     point = None if pick is None else np.asarray(pick, dtype=np.float64).reshape(1, 3)
     holder = next((i for i, r in enumerate(regions) if point is not None and r.contains(point)[0]), None)
     if point is not None and holder is None:
-        raise EngineError(f"the pick point ({', '.join(f'{x:.3g}' for x in point[0])}) lies in none of the "
-                          f"{len(regions)} edit regions: put it on the object to keep, inside its region")
+        raise EngineError(
+            f"the pick point ({', '.join(f'{x:.3g}' for x in point[0])}) lies in none of the "
+            f"{len(regions)} edit regions: put it on the object to keep, inside its region"
+        )
     results = []
     for i, region in enumerate(regions):
         try:
@@ -524,9 +582,12 @@ def extract_regions(extract_one, regions: list, pick=None) -> ExtractResult:
         vertices=np.concatenate([r.vertices for r in results]),
         faces=np.concatenate([r.faces + o for r, o in zip(results, offsets)]),
         colors=None if any(r.colors is None for r in results) else np.concatenate([r.colors for r in results]),
-        kept=[c for r in results for c in r.kept], dropped=[c for r in results for c in r.dropped],
-        dropped_count=sum(r.dropped_count for r in results), dropped_volume=sum(r.dropped_volume for r in results),
-        threshold=results[0].threshold, min_volume=min(r.min_volume for r in results),
+        kept=[c for r in results for c in r.kept],
+        dropped=[c for r in results for c in r.dropped],
+        dropped_count=sum(r.dropped_count for r in results),
+        dropped_volume=sum(r.dropped_volume for r in results),
+        threshold=results[0].threshold,
+        min_volume=min(r.min_volume for r in results),
         timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
         cut=np.concatenate([r.cut for r in results]),
         notes=[f"edit region {i + 1}: {line}" for i, r in enumerate(results) for line in r.notes],
@@ -534,8 +595,9 @@ def extract_regions(extract_one, regions: list, pick=None) -> ExtractResult:
     )
 
 
-def first_dense_point(density_fn: DensityFn, origin, direction, bounds, threshold: float = DEFAULT_THRESHOLD,
-                      samples: int = 2048) -> tuple[np.ndarray | None, float, float]:
+def first_dense_point(
+    density_fn: DensityFn, origin, direction, bounds, threshold: float = DEFAULT_THRESHOLD, samples: int = 2048
+) -> tuple[np.ndarray | None, float, float]:
     """Where a ray first meets {density > threshold} inside `bounds`: (point or None, distance
     along the unit ray, largest density seen). What a click on the NeRF in the viewport picks.
 

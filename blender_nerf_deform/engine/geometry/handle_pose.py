@@ -25,9 +25,17 @@ class RegionDeformer:
 
     MODES = ("ARAP", "AFFINE")
 
-    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_regions: list,
-                 pin_region: np.ndarray | None = None, names: list[str] | None = None, mode: str = "ARAP",
-                 cage_pins: np.ndarray | None = None):
+    def __init__(
+        self,
+        rest_vertices: np.ndarray,
+        tets: np.ndarray,
+        embedding,
+        handle_regions: list,
+        pin_region: np.ndarray | None = None,
+        names: list[str] | None = None,
+        mode: str = "ARAP",
+        cage_pins: np.ndarray | None = None,
+    ):
         """`handle_regions`: surface vertex indices per handle; `pin_region`: surface vertices the artist
         pinned; `cage_pins`: cage vertices pinned where an edit region cut the scene (cage.cut_pins)."""
         if mode not in self.MODES:
@@ -41,8 +49,9 @@ class RegionDeformer:
             self.precompute_s = self.surface.precompute_s
             return
         pins = [np.asarray(pin_region, dtype=np.int64)] if pin_region is not None and len(pin_region) else []
-        regions = regions_to_cage(embedding, list(handle_regions) + pins, len(self.rest),
-                                  self.names + ["the pinned region"] * len(pins))
+        regions = regions_to_cage(
+            embedding, list(handle_regions) + pins, len(self.rest), self.names + ["the pinned region"] * len(pins)
+        )
         self.cage_regions = regions[: self.n_handles]
         self.precompute_s = 0.0
 
@@ -57,11 +66,15 @@ class RegionDeformer:
         if t.shape not in ((4, 4), (3, 4)):
             raise EngineError(f"handle {name!r}: its transform must be a 4x4 matrix, got shape {t.shape}")
         if not np.isfinite(t).all():
-            raise EngineError(f"handle {name!r} has a non-finite transform (location {t[:3, 3].tolist()}): "
-                              "give it a finite location, rotation and scale")
+            raise EngineError(
+                f"handle {name!r} has a non-finite transform (location {t[:3, 3].tolist()}): "
+                "give it a finite location, rotation and scale"
+            )
         if np.abs(t[:3]).max() > MAX_COORDINATE:
-            raise EngineError(f"handle {name!r} moves its region beyond {MAX_COORDINATE:g} NeRF units (location "
-                              f"{', '.join(f'{x:.3g}' for x in t[:3, 3])}): bring it back near the NeRF")
+            raise EngineError(
+                f"handle {name!r} moves its region beyond {MAX_COORDINATE:g} NeRF units (location "
+                f"{', '.join(f'{x:.3g}' for x in t[:3, 3])}): bring it back near the NeRF"
+            )
         return t
 
     def solve(self, transforms: list) -> tuple[np.ndarray, dict]:
@@ -75,8 +88,14 @@ class RegionDeformer:
                 deformed = affine_region(deformed, region, transform)
             return deformed, {}
         pose = self.surface.solve(transforms)
-        stats = {"iterations": pose.iterations, "converged": bool(pose.converged), "solve_s": pose.seconds,
-                 "surface_residual": pose.surface_residual, "min_det_f": pose.min_det, "barrier_tets": pose.barrier_tets}
+        stats = {
+            "iterations": pose.iterations,
+            "converged": bool(pose.converged),
+            "solve_s": pose.seconds,
+            "surface_residual": pose.surface_residual,
+            "min_det_f": pose.min_det,
+            "barrier_tets": pose.barrier_tets,
+        }
         if pose.reflected:
             stats["reflected_handles"] = pose.reflected
         return pose.vertices, stats

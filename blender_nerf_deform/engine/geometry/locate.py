@@ -106,7 +106,9 @@ class TetLocator:
         V = _tensor(vertices, dtype, self.device)
         T = _tensor(tets, torch.int64, self.device)
         if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
-            raise EngineError(f"a cage needs (N, 3) vertices and (M>0, 4) tets, got {tuple(V.shape)} and {tuple(T.shape)}")
+            raise EngineError(
+                f"a cage needs (N, 3) vertices and (M>0, 4) tets, got {tuple(V.shape)} and {tuple(T.shape)}"
+            )
         # The kernels index vertices by tets and cells by coordinates without bounds checks.
         if not bool(torch.isfinite(V).all()):
             bad = int(torch.nonzero(~torch.isfinite(V).all(1))[0])
@@ -124,9 +126,13 @@ class TetLocator:
                 self.eps = 1e-10
             src = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
             tsrc = tets.detach().cpu().numpy() if isinstance(tets, torch.Tensor) else np.asarray(tets)
-            self._grid = NumbaGrid(src, tsrc, cells_per_tet if numba_cells_per_tet is None else numba_cells_per_tet, self.eps, 4 * max_res)
+            self._grid = NumbaGrid(
+                src, tsrc, cells_per_tet if numba_cells_per_tet is None else numba_cells_per_tet, self.eps, 4 * max_res
+            )
             if self._grid.n_degenerate:
-                raise EngineError(f"degenerate cage: {self._grid.n_degenerate} tets have zero volume, so points in them cannot be located")
+                raise EngineError(
+                    f"degenerate cage: {self._grid.n_degenerate} tets have zero volume, so points in them cannot be located"
+                )
             self.res = torch.as_tensor(self._grid.res)
             self.n_leaves = self._grid.n_cells
             self.cell_count = torch.from_numpy(np.diff(self._grid.cell_start))
@@ -146,7 +152,7 @@ class TetLocator:
         h = float((extent.prod() / (cells_per_tet * len(T))) ** (1.0 / 3.0))
         res = torch.clamp(torch.ceil(extent / h), 1, max_res).to(torch.int64)
         self.res = res
-        self.inv_cell = (res.to(dtype) / extent)
+        self.inv_cell = res.to(dtype) / extent
         rx, ry, rz = (int(r) for r in res)
         self.n_cells = rx * ry * rz
         # Every coordinate goes through the same monotonic formula g = (x - lo) * inv,
@@ -228,7 +234,9 @@ class TetLocator:
         ijk = torch.minimum(g.floor().to(torch.int64), self.res - 1).clamp_min(0)
         cid = (ijk[:, 2] * int(self.res[1]) + ijk[:, 1]) * int(self.res[0]) + ijk[:, 0]
         sc = self.sub[cid]
-        jk = torch.minimum(((g - ijk.to(g.dtype)) * sc.to(g.dtype)[:, None]).floor().to(torch.int64).clamp_min(0), sc[:, None] - 1)
+        jk = torch.minimum(
+            ((g - ijk.to(g.dtype)) * sc.to(g.dtype)[:, None]).floor().to(torch.int64).clamp_min(0), sc[:, None] - 1
+        )
         leaf = self.leaf_offset[cid] + (jk[:, 2] * sc + jk[:, 1]) * sc + jk[:, 0]
         return torch.where(inside, leaf, torch.full_like(leaf, -1))
 

@@ -28,6 +28,7 @@ from .. import backend
 
 if backend.HAVE_NUMBA:
     import numba
+
     from ..kernel_cache import njit, prange
 
 
@@ -45,9 +46,21 @@ if backend.HAVE_NUMBA:
                 for c in range(3):
                     e[j, c] = V[T[t, j + 1], c] - V[T[t, 0], c]
             # rows of D⁻¹ (D has columns e1, e2, e3) = cross products / det
-            c23 = (e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1], e[1, 2] * e[2, 0] - e[1, 0] * e[2, 2], e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0])
-            c31 = (e[2, 1] * e[0, 2] - e[2, 2] * e[0, 1], e[2, 2] * e[0, 0] - e[2, 0] * e[0, 2], e[2, 0] * e[0, 1] - e[2, 1] * e[0, 0])
-            c12 = (e[0, 1] * e[1, 2] - e[0, 2] * e[1, 1], e[0, 2] * e[1, 0] - e[0, 0] * e[1, 2], e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0])
+            c23 = (
+                e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1],
+                e[1, 2] * e[2, 0] - e[1, 0] * e[2, 2],
+                e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0],
+            )
+            c31 = (
+                e[2, 1] * e[0, 2] - e[2, 2] * e[0, 1],
+                e[2, 2] * e[0, 0] - e[2, 0] * e[0, 2],
+                e[2, 0] * e[0, 1] - e[2, 1] * e[0, 0],
+            )
+            c12 = (
+                e[0, 1] * e[1, 2] - e[0, 2] * e[1, 1],
+                e[0, 2] * e[1, 0] - e[0, 0] * e[1, 2],
+                e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0],
+            )
             det = e[0, 0] * c23[0] + e[0, 1] * c23[1] + e[0, 2] * c23[2]
             if det == 0.0:
                 bad[t] = 1
@@ -144,7 +157,18 @@ if backend.HAVE_NUMBA:
                 for k in range(z0, z1 + 1):
                     for j in range(y0, y1 + 1):
                         for i in range(x0, x1 + 1):
-                            sc = _pair_score(R, t, gn, glo[0] + (i + 0.5) / inv[0], glo[1] + (j + 0.5) / inv[1], glo[2] + (k + 0.5) / inv[2], hx, hy, hz, eps)
+                            sc = _pair_score(
+                                R,
+                                t,
+                                gn,
+                                glo[0] + (i + 0.5) / inv[0],
+                                glo[1] + (j + 0.5) / inv[1],
+                                glo[2] + (k + 0.5) / inv[2],
+                                hx,
+                                hy,
+                                hz,
+                                eps,
+                            )
                             if sc == -np.inf:
                                 pair_cell[n] = -1  # pruned: the cell lies outside one of the tet's face planes
                             else:

@@ -26,8 +26,14 @@ from ..files import atomic_write
 from .poses import check_coordinates
 
 
-def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
-              cut: np.ndarray | None = None, part: np.ndarray | None = None) -> None:
+def write_ply(
+    path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    colors: np.ndarray | None = None,
+    cut: np.ndarray | None = None,
+    part: np.ndarray | None = None,
+) -> None:
     """Binary little-endian PLY; `colors` (N,3) uint8 or float in [0,1] become red/green/blue uchar;
     `cut` (N,) bool becomes the `nerf_cut` uchar property (written only when some vertex is cut),
     `part` (N,) int the `nerf_part` uchar property (the edit region; written when there are several)."""
@@ -66,7 +72,12 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     frec = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     frec["n"] = 3
     frec["i"] = faces
-    header = ["ply", "format binary_little_endian 1.0", "comment blender_nerf_deform", f"element vertex {len(vertices)}"]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment blender_nerf_deform",
+        f"element vertex {len(vertices)}",
+    ]
     header += ["property float x", "property float y", "property float z"]
     if colors is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
@@ -85,9 +96,22 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
 
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 
@@ -97,7 +121,7 @@ def _ply_header(path: Path, data: bytes) -> tuple[str, list, int]:
     if not data.startswith(b"ply") or end < 0:
         raise EngineError(f"{path} is not a PLY file (no 'ply' magic or no end_header)")
     newline = data.find(b"\n", end)
-    if newline < 0 or data[end + len(b"end_header"):newline].strip():
+    if newline < 0 or data[end + len(b"end_header") : newline].strip():
         raise EngineError(f"{path}: the PLY header's end_header line has no newline after it (truncated file?)")
     fmt, elements = None, []
     for number, line in enumerate(data[:end].decode("ascii", "replace").splitlines(), start=1):
@@ -108,8 +132,10 @@ def _ply_header(path: Path, data: bytes) -> tuple[str, list, int]:
             fmt = tok[1]
         elif tok[0] == "element":
             if len(tok) != 3 or not tok[2].isdigit():
-                raise EngineError(f"{path}: header line {number} {line.strip()!r} must be 'element <name> <count>' "
-                                  "with a whole-number count")
+                raise EngineError(
+                    f"{path}: header line {number} {line.strip()!r} must be 'element <name> <count>' "
+                    "with a whole-number count"
+                )
             elements.append([tok[1], int(tok[2]), []])
         elif tok[0] == "property" and elements:
             props = tok[1:]
@@ -125,15 +151,18 @@ def _ply_header(path: Path, data: bytes) -> tuple[str, list, int]:
 def _binary_element(path, data, offset, name, count, dtype) -> np.ndarray:
     need = dtype.itemsize * count
     if offset + need > len(data):
-        raise EngineError(f"{path} is truncated: element {name!r} needs {need} bytes at byte {offset}, "
-                          f"the file has {len(data) - offset} left")
+        raise EngineError(
+            f"{path} is truncated: element {name!r} needs {need} bytes at byte {offset}, "
+            f"the file has {len(data) - offset} left"
+        )
     return np.frombuffer(data, dtype, count, offset)
 
 
 def _ascii_rows(path, rows, pos, name, count) -> list[list[str]]:
     if pos + count > len(rows):
-        raise EngineError(f"{path} is truncated: element {name!r} needs {count} rows, "
-                          f"the file has {max(len(rows) - pos, 0)} left")
+        raise EngineError(
+            f"{path} is truncated: element {name!r} needs {count} rows, the file has {max(len(rows) - pos, 0)} left"
+        )
     return [r.split() for r in rows[pos : pos + count]]
 
 
@@ -166,8 +195,9 @@ def read_ply(path, with_cut: bool = False, with_part: bool = False) -> tuple:
             if is_list:
                 if any(len(r) != 4 or r[0] != "3" for r in chunk):
                     bad = next(i for i, r in enumerate(chunk) if len(r) != 4 or r[0] != "3")
-                    raise EngineError(f"{path}: face {bad} is {' '.join(chunk[bad])!r}: only triangle faces "
-                                      "('3 i j k') are supported")
+                    raise EngineError(
+                        f"{path}: face {bad} is {' '.join(chunk[bad])!r}: only triangle faces ('3 i j k') are supported"
+                    )
                 try:
                     faces = np.array([r[1:] for r in chunk], dtype=np.int64).reshape(-1, 3)
                 except ValueError:
@@ -175,8 +205,10 @@ def read_ply(path, with_cut: bool = False, with_part: bool = False) -> tuple:
                 continue
             short = [i for i, r in enumerate(chunk) if len(r) != len(props)]
             if short:
-                raise EngineError(f"{path}: {name} row {short[0]} has {len(chunk[short[0]])} values, the header "
-                                  f"declares {len(props)} properties")
+                raise EngineError(
+                    f"{path}: {name} row {short[0]} has {len(chunk[short[0]])} values, the header "
+                    f"declares {len(props)} properties"
+                )
             try:
                 table = np.array(chunk, dtype=np.float64).reshape(count, len(props))
             except ValueError:
@@ -214,8 +246,10 @@ def read_ply(path, with_cut: bool = False, with_part: bool = False) -> tuple:
         raise EngineError(f"{path}: a mesh needs vertex and face elements")
     bad = np.flatnonzero(~np.isfinite(verts).all(axis=1))
     if len(bad):
-        raise EngineError(f"{path}: vertex {bad[0]} has non-finite coordinates {verts[bad[0]].tolist()} "
-                          f"({len(bad)} of {len(verts)} vertices do)")
+        raise EngineError(
+            f"{path}: vertex {bad[0]} has non-finite coordinates {verts[bad[0]].tolist()} "
+            f"({len(bad)} of {len(verts)} vertices do)"
+        )
     if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
         raise EngineError(f"{path}: faces index vertices outside 0..{len(verts) - 1}")
     return (verts, faces, colors) + ((cut,) if with_cut else ()) + ((part,) if with_part else ())
@@ -245,8 +279,9 @@ def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
     except OSError as exc:
         raise EngineError(f"cannot read cage {path}: {exc.strerror or exc}") from None
     if magic.startswith(b"\x93NUMPY"):
-        raise EngineError(f"cannot read cage {path}: it is a single .npy array, not a cage .npz "
-                          "(an archive of `vertices` and `tets`)")
+        raise EngineError(
+            f"cannot read cage {path}: it is a single .npy array, not a cage .npz (an archive of `vertices` and `tets`)"
+        )
     if not magic.startswith(b"PK"):
         raise EngineError(f"cannot read cage {path}: it is not a cage file (not an .npz archive)")
     try:
@@ -257,23 +292,31 @@ def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
                     out[k] = z[k]
                 except ValueError as exc:
                     if "pickle" in str(exc):
-                        raise EngineError(f"cannot read cage {path}: array `{k}` holds Python objects (pickled "
-                                          "data), which a cage file never does") from None
+                        raise EngineError(
+                            f"cannot read cage {path}: array `{k}` holds Python objects (pickled "
+                            "data), which a cage file never does"
+                        ) from None
                     raise
     except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as exc:
-        raise EngineError(f"cannot read cage {path}: it is not a cage file ({str(exc).splitlines()[0][:160] or type(exc).__name__})") from None
+        raise EngineError(
+            f"cannot read cage {path}: it is not a cage file ({str(exc).splitlines()[0][:160] or type(exc).__name__})"
+        ) from None
     for key in ("vertices", "tets"):
         if key not in out:
             raise EngineError(f"cage {path} has no `{key}` array")
     V, T = out["vertices"], out["tets"]
     if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4 or not np.issubdtype(T.dtype, np.integer):
-        raise EngineError(f"cage {path}: `vertices` must be (N,3) and `tets` (M,4) int, got {V.shape} and {T.shape} {T.dtype}")
+        raise EngineError(
+            f"cage {path}: `vertices` must be (N,3) and `tets` (M,4) int, got {V.shape} and {T.shape} {T.dtype}"
+        )
     if not (np.issubdtype(V.dtype, np.floating) or np.issubdtype(V.dtype, np.integer)):
         raise EngineError(f"cage {path}: `vertices` must be numbers, got an array of {V.dtype}")
     bad = np.flatnonzero(~np.isfinite(V).all(axis=1))
     if len(bad):
-        raise EngineError(f"cage {path}: vertex {bad[0]} has non-finite coordinates {V[bad[0]].tolist()} "
-                          f"({len(bad)} of {len(V)} vertices do)")
+        raise EngineError(
+            f"cage {path}: vertex {bad[0]} has non-finite coordinates {V[bad[0]].tolist()} "
+            f"({len(bad)} of {len(V)} vertices do)"
+        )
     check_coordinates(V, f"cage {path}")
     if len(T) == 0:
         raise EngineError(f"cage {path} has no tets")
@@ -292,5 +335,7 @@ def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
         scale = float(np.ptp(V, axis=0).max()) ** 3
         bad = np.flatnonzero(vol <= 1e-12 * scale)
         if len(bad):
-            raise EngineError(f"degenerate cage {path}: {len(bad)} of {len(T)} tets have zero or negative volume (first: tet {bad[0]})")
+            raise EngineError(
+                f"degenerate cage {path}: {len(bad)} of {len(T)} tets have zero or negative volume (first: tet {bad[0]})"
+            )
     return out

@@ -49,21 +49,31 @@ def load_pose(path, vertex_shape: tuple) -> np.ndarray:
         raise EngineError(f"deformed vertices {path} do not exist") from None
     except (ValueError, OSError) as exc:
         raise EngineError(f"cannot read deformed vertices {path}: {exc}") from None
-    if not isinstance(deformed, np.ndarray) or deformed.ndim != 2 or deformed.shape[1] != 3 \
-            or not (np.issubdtype(deformed.dtype, np.floating) or np.issubdtype(deformed.dtype, np.integer)):
+    if (
+        not isinstance(deformed, np.ndarray)
+        or deformed.ndim != 2
+        or deformed.shape[1] != 3
+        or not (np.issubdtype(deformed.dtype, np.floating) or np.issubdtype(deformed.dtype, np.integer))
+    ):
         shape = getattr(deformed, "shape", None)
         dtype = getattr(deformed, "dtype", None)
         what = f"{shape}" if dtype is None or dtype.kind in "fiu" else f"a {shape} array of {dtype} (not numbers)"
-        raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
-                          f"(same vertices, same order), got {what}")
+        raise EngineError(
+            f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
+            f"(same vertices, same order), got {what}"
+        )
     if deformed.shape != vertex_shape:
-        raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
-                          f"(same vertices, same order), got {deformed.shape}: {deformed.shape[0]} vertices, "
-                          f"the cage has {vertex_shape[0]}")
+        raise EngineError(
+            f"{path}: deformed vertices must be a finite {vertex_shape} array, the cage's shape "
+            f"(same vertices, same order), got {deformed.shape}: {deformed.shape[0]} vertices, "
+            f"the cage has {vertex_shape[0]}"
+        )
     bad = np.flatnonzero(~np.isfinite(deformed).all(axis=1))
     if len(bad):
-        raise EngineError(f"{path}: deformed vertices must be a finite {vertex_shape} array, but {len(bad)} of its "
-                          f"rows hold NaN or inf (first: vertex {bad[0]})")
+        raise EngineError(
+            f"{path}: deformed vertices must be a finite {vertex_shape} array, but {len(bad)} of its "
+            f"rows hold NaN or inf (first: vertex {bad[0]})"
+        )
     check_coordinates(deformed, f"{path}: deformed vertices")
     return deformed.astype(np.float64)
 
@@ -74,8 +84,10 @@ def check_coordinates(vertices: np.ndarray, where: str) -> None:
     bad = np.flatnonzero(~(np.isfinite(v) & (np.abs(v) <= MAX_COORDINATE)).all(axis=1)) if v.size else ()
     if len(bad):
         first = ", ".join(f"{x:.3g}" for x in np.asarray(v[bad[0]], dtype=np.float64))
-        raise EngineError(f"{where}: vertex {bad[0]} lies at ({first}), not a finite point within {MAX_COORDINATE:g} "
-                          f"NeRF units of the origin ({len(bad)} of {len(v)} vertices do not)")
+        raise EngineError(
+            f"{where}: vertex {bad[0]} lies at ({first}), not a finite point within {MAX_COORDINATE:g} "
+            f"NeRF units of the origin ({len(bad)} of {len(v)} vertices do not)"
+        )
 
 
 def check_not_collapsed(path, rest_vertices: np.ndarray, deformed: np.ndarray, tets: np.ndarray) -> None:
@@ -84,17 +96,23 @@ def check_not_collapsed(path, rest_vertices: np.ndarray, deformed: np.ndarray, t
 
     report = inversion_report(rest_vertices, deformed, tets)
     if len(tets) and report.n_degenerate == len(tets):
-        raise EngineError(f"{path}: the pose collapsed the cage: all {len(tets)} tets are degenerate (flattened "
-                          "to zero volume), so no sample can be mapped through it")
+        raise EngineError(
+            f"{path}: the pose collapsed the cage: all {len(tets)} tets are degenerate (flattened "
+            "to zero volume), so no sample can be mapped through it"
+        )
 
 
-def load_poses(cage_vertices: np.ndarray, deformed_path, n_frames: int, tets: np.ndarray | None = None) -> list[np.ndarray]:
+def load_poses(
+    cage_vertices: np.ndarray, deformed_path, n_frames: int, tets: np.ndarray | None = None
+) -> list[np.ndarray]:
     """One checked pose per frame: a single file repeated, or a folder's files matched to frames in order.
     With the cage's `tets`, a pose that collapses the whole cage is refused too."""
     files = pose_files(deformed_path)
     if Path(deformed_path).is_dir() and len(files) != n_frames:
-        raise EngineError(f"--deformed {deformed_path}: {len(files)} pose files (.npy) for {n_frames} camera frames "
-                          "in --cameras; give one pose per frame")
+        raise EngineError(
+            f"--deformed {deformed_path}: {len(files)} pose files (.npy) for {n_frames} camera frames "
+            "in --cameras; give one pose per frame"
+        )
     poses = [load_pose(f, cage_vertices.shape) for f in files]
     if tets is not None:
         for f, pose in zip(files, poses):

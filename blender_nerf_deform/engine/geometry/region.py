@@ -72,7 +72,7 @@ class EditRegion:
         b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
         return self.overlaps(EditRegion(center=0.5 * (b[0] + b[1]), size=b[1] - b[0], rotation=np.eye(3)))
 
-    def overlaps(self, other: "EditRegion") -> bool:
+    def overlaps(self, other: EditRegion) -> bool:
         """Whether two oriented boxes share interior: the separating axis test (their 3 + 3 face
         normals and the 9 cross products of their edges); touching faces do not overlap."""
         A, B, d = self.rotation, other.rotation, other.center - self.center
@@ -96,17 +96,23 @@ class EditRegion:
             rx, rz = math.atan2(R[2, 1], R[2, 2]), math.atan2(R[1, 0], R[0, 0])
         else:  # gimbal lock: put it all in x
             rx, rz = math.atan2(-R[1, 2], R[1, 1]), 0.0
-        return {"center": [float(x) for x in self.center], "size": [float(x) for x in self.size],
-                "rotation_euler": [rx, ry, rz]}
+        return {
+            "center": [float(x) for x in self.center],
+            "size": [float(x) for x in self.size],
+            "rotation_euler": [rx, ry, rz],
+        }
 
     def describe(self) -> str:
         c, s = self.center, self.size
-        return (f"region centred at ({c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g}), size {s[0]:.3g} x {s[1]:.3g} x {s[2]:.3g}")
+        return f"region centred at ({c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g}), size {s[0]:.3g} x {s[1]:.3g} x {s[2]:.3g}"
 
 
 def _vector(value, key: str, where: str) -> np.ndarray:
-    if (not isinstance(value, (list, tuple)) or len(value) != 3
-            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)):
+    if (
+        not isinstance(value, (list, tuple))
+        or len(value) != 3
+        or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+    ):
         raise EngineError(f"{where}: `{key}` must be a list of three numbers, got {value!r}")
     v = np.asarray(value, dtype=np.float64)
     if not np.isfinite(v).all():
@@ -120,8 +126,10 @@ def region_from_dict(data, where: str = "edit region") -> EditRegion:
         raise EngineError(f"{where} must be a JSON object with {', '.join(KEYS)}, got {type(data).__name__}")
     missing = [k for k in KEYS if k not in data]
     if missing:
-        raise EngineError(f"{where} lacks {', '.join(f'`{k}`' for k in missing)} "
-                          '(expected {"center": [x, y, z], "size": [sx, sy, sz], "rotation_euler": [rx, ry, rz]})')
+        raise EngineError(
+            f"{where} lacks {', '.join(f'`{k}`' for k in missing)} "
+            '(expected {"center": [x, y, z], "size": [sx, sy, sz], "rotation_euler": [rx, ry, rz]})'
+        )
     center = _vector(data["center"], "center", where)
     size = _vector(data["size"], "size", where)
     euler = _vector(data["rotation_euler"], "rotation_euler", where)
@@ -150,9 +158,11 @@ def check_region_in_box(region: EditRegion, bounds: np.ndarray, what: str = "the
     """EngineError when the region lies entirely outside `bounds` (nothing there to edit)."""
     b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
     if not region.overlaps_box(b):
-        raise EngineError(f"the {region.describe()} lies outside {what} "
-                          f"[{', '.join(f'{x:.3g}' for x in b[0])}] - [{', '.join(f'{x:.3g}' for x in b[1])}]: "
-                          "move it onto the object")
+        raise EngineError(
+            f"the {region.describe()} lies outside {what} "
+            f"[{', '.join(f'{x:.3g}' for x in b[0])}] - [{', '.join(f'{x:.3g}' for x in b[1])}]: "
+            "move it onto the object"
+        )
 
 
 def check_regions_apart(regions: list) -> None:
@@ -160,5 +170,7 @@ def check_regions_apart(regions: list) -> None:
     for i in range(len(regions)):
         for j in range(i + 1, len(regions)):
             if regions[i].overlaps(regions[j]):
-                raise EngineError(f"edit regions {i + 1} and {j + 1} overlap ({regions[i].describe()}; "
-                                  f"{regions[j].describe()}): each object needs its own space, move them apart")
+                raise EngineError(
+                    f"edit regions {i + 1} and {j + 1} overlap ({regions[i].describe()}; "
+                    f"{regions[j].describe()}): each object needs its own space, move them apart"
+                )

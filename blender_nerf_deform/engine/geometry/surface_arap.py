@@ -91,10 +91,19 @@ class SurfaceArap:
     vertices pinned at rest; `cage_pins`: cage vertices pinned at rest (the edit region's cut).
     `stiffness`: the constraints' weight against ARAP's, per cage vertex a region touches."""
 
-    def __init__(self, rest_vertices: np.ndarray, tets: np.ndarray, embedding, handle_points: list,
-                 pin_points: np.ndarray | None = None, cage_pins: np.ndarray | None = None,
-                 names: list[str] | None = None, stiffness: float = 100.0, threshold: float = 0.1,
-                 barrier_stiffness: float = 1000.0):
+    def __init__(
+        self,
+        rest_vertices: np.ndarray,
+        tets: np.ndarray,
+        embedding,
+        handle_points: list,
+        pin_points: np.ndarray | None = None,
+        cage_pins: np.ndarray | None = None,
+        names: list[str] | None = None,
+        stiffness: float = 100.0,
+        threshold: float = 0.1,
+        barrier_stiffness: float = 1000.0,
+    ):
         import scipy.sparse as sp
         from scipy.sparse.linalg import splu
 
@@ -119,7 +128,9 @@ class SurfaceArap:
         # The constraint rows: the handles' surface vertices, the pinned ones, the cut's cage vertices.
         self.names = list(names or [f"handle {k}" for k in range(len(handle_points))])
         pins = [np.asarray(pin_points, dtype=np.int64)] if pin_points is not None and len(pin_points) else []
-        regions = check_disjoint(list(handle_points) + pins, len(embedding.weights), self.names + ["the pinned region"] * len(pins))
+        regions = check_disjoint(
+            list(handle_points) + pins, len(embedding.weights), self.names + ["the pinned region"] * len(pins)
+        )
         unit = float(self.L.diagonal().mean()) * float(stiffness)
         rows_c, rows_w, row_weight, self._handle_rows, self._region_size = [], [], [], [], []
         rest_points = []
@@ -170,10 +181,21 @@ class SurfaceArap:
         self._pull = []
         for rows in self._handle_rows:
             P, W_h = self._rest_points[rows], weighted[rows]
-            self._pull.append((np.asarray(W_h.T @ P), np.asarray(W_h.sum(0)).ravel(),
-                               P.T @ (row_weight[rows, None] * P), P.T @ row_weight[rows], float(row_weight[rows].sum())))
+            self._pull.append(
+                (
+                    np.asarray(W_h.T @ P),
+                    np.asarray(W_h.sum(0)).ravel(),
+                    P.T @ (row_weight[rows, None] * P),
+                    P.T @ row_weight[rows],
+                    float(row_weight[rows].sum()),
+                )
+            )
         # Which cage vertices each handle drives in the first guess (the ones its surface leans on most).
-        lean = np.stack([np.asarray(self.C[rows].sum(0)).ravel() for rows in self._handle_rows]) if self._handle_rows else np.zeros((0, n))
+        lean = (
+            np.stack([np.asarray(self.C[rows].sum(0)).ravel() for rows in self._handle_rows])
+            if self._handle_rows
+            else np.zeros((0, n))
+        )
         owner = np.where(lean.max(0) > 0, lean.argmax(0), -1) if len(lean) else np.full(n, -1)
         guess_regions = [np.flatnonzero(owner == h) for h in range(len(self._handle_rows))]
         held = np.flatnonzero(np.asarray(abs(self.C).sum(0)).ravel() > 0)
@@ -249,7 +271,9 @@ class SurfaceArap:
         vals = d2[:, None, None] * gg[:, :, None] * gg[:, None, :]
         ii = np.broadcast_to(dof[:, :, None], vals.shape).ravel()
         jj = np.broadcast_to(dof[:, None, :], vals.shape).ravel()
-        H = (sp.kron(sp.identity(3), 2.0 * self.A) + sp.coo_matrix((vals.ravel(), (ii, jj)), shape=(3 * n, 3 * n))).tocsc()
+        H = (
+            sp.kron(sp.identity(3), 2.0 * self.A) + sp.coo_matrix((vals.ravel(), (ii, jj)), shape=(3 * n, 3 * n))
+        ).tocsc()
         lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1, options=dict(SymmetricMode=True))
         return lu.solve(r.T.ravel()).reshape(3, n).T
 
@@ -310,7 +334,9 @@ class SurfaceArap:
             if J.min() >= 0.5 * self.j:
                 clear = U
             if step < GUESS_STEPS:
-                U = self.rest + self._solve_A(2.0 * (B - self._L_rest + pulls[0]))  # the minimiser of E at these rotations
+                U = self.rest + self._solve_A(
+                    2.0 * (B - self._L_rest + pulls[0])
+                )  # the minimiser of E at these rotations
         if clear is not None:
             return clear
         D = U - self.rest
@@ -343,7 +369,7 @@ class SurfaceArap:
                 s_k, y_k = U - last[0], G - last[1]
                 sy = float((s_k * y_k).sum())
                 if sy > 1e-12 * float((y_k * y_k).sum()) ** 0.5 * float((s_k * s_k).sum()) ** 0.5:
-                    history = (history + [(s_k, y_k, 1.0 / sy)])[max(0, len(history) + 1 - HISTORY):]
+                    history = (history + [(s_k, y_k, 1.0 / sy)])[max(0, len(history) + 1 - HISTORY) :]
             d = self._lbfgs(G, history, act, g, d2)
             slope = float((G * d).sum())
             if slope >= 0 and history:  # the history's curvature misleads: start over from the plain step
@@ -377,5 +403,6 @@ class SurfaceArap:
             target = self._rest_points[rows] @ A[:3, :3].T + A[:3, 3]
             residual = max(residual, float(np.linalg.norm(C_h @ U - target, axis=1).max()) / size)
         reflected = [name for name, A in zip(self.names, transforms) if np.linalg.det(_matrix(A)[:3, :3]) < 0]
-        return SurfacePose(U, it, moved < tol, time.perf_counter() - t0, float(J.min()), residual,
-                           int((J < self.j).sum()), reflected)
+        return SurfacePose(
+            U, it, moved < tol, time.perf_counter() - t0, float(J.min()), residual, int((J < self.j).sum()), reflected
+        )

@@ -18,7 +18,6 @@ from .arap_kernels import _E0, _E1
 
 if backend.HAVE_NUMBA:
     from ..kernel_cache import njit
-
     from .arap_kernels import _horn_matrix, _jacobi_top_eigenvector, _quaternion_rotation
 
     @njit(inline="always")
@@ -26,9 +25,11 @@ if backend.HAVE_NUMBA:
         """(-1)^(r+c) x the determinant of the 4x4 M without row r and column c."""
         r0, r1, r2 = (1, 2, 3) if r == 0 else ((0, 2, 3) if r == 1 else ((0, 1, 3) if r == 2 else (0, 1, 2)))
         c0, c1, c2 = (1, 2, 3) if c == 0 else ((0, 2, 3) if c == 1 else ((0, 1, 3) if c == 2 else (0, 1, 2)))
-        d = (M[r0, c0] * (M[r1, c1] * M[r2, c2] - M[r1, c2] * M[r2, c1])
-             - M[r0, c1] * (M[r1, c0] * M[r2, c2] - M[r1, c2] * M[r2, c0])
-             + M[r0, c2] * (M[r1, c0] * M[r2, c1] - M[r1, c1] * M[r2, c0]))
+        d = (
+            M[r0, c0] * (M[r1, c1] * M[r2, c2] - M[r1, c2] * M[r2, c1])
+            - M[r0, c1] * (M[r1, c0] * M[r2, c2] - M[r1, c2] * M[r2, c0])
+            + M[r0, c2] * (M[r1, c0] * M[r2, c1] - M[r1, c1] * M[r2, c0])
+        )
         return -d if (r + c) % 2 else d
 
     @njit(inline="always")

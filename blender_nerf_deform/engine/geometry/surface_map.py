@@ -19,8 +19,13 @@ class SurfaceMap:
     def __init__(self, embedding: Embedding, n_cage_vertices: int):
         n = len(embedding.corners)
         self.matrix = scipy.sparse.csr_matrix(
-            (np.asarray(embedding.weights, dtype=np.float64).ravel(), np.asarray(embedding.corners).ravel(),
-             np.arange(0, 4 * n + 1, 4)), shape=(n, n_cage_vertices))
+            (
+                np.asarray(embedding.weights, dtype=np.float64).ravel(),
+                np.asarray(embedding.corners).ravel(),
+                np.arange(0, 4 * n + 1, 4),
+            ),
+            shape=(n, n_cage_vertices),
+        )
 
     def apply(self, deformed_vertices: np.ndarray) -> np.ndarray:
         """(N, 3) surface positions for the given (n_cage_vertices, 3) cage positions."""

@@ -58,7 +58,12 @@ def compile_kernels() -> None:
     arap.solve([twist], max_iter=3)
     arap.step([np.eye(4)])
     surface = 0.9 * vertices[np.abs(vertices).max(axis=1) > 0.9]  # points on a box inside the cage
-    SurfaceArap(vertices, tets, embed_points(surface, vertices, tets), [np.flatnonzero(surface[:, 2] > 0.5)],
-                np.flatnonzero(surface[:, 2] < -0.5)).solve([twist], max_iter=5)
+    SurfaceArap(
+        vertices,
+        tets,
+        embed_points(surface, vertices, tets),
+        [np.flatnonzero(surface[:, 2] > 0.5)],
+        np.flatnonzero(surface[:, 2] < -0.5),
+    ).solve([twist], max_iter=5)
     points = np.random.default_rng(0).uniform(-1.2, 1.2, (256, 3))
     TetLocator(bent_pose(vertices), tets).locate(points, return_barycentric=True)

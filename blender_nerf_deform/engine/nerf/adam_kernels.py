@@ -31,4 +31,3 @@ if backend.HAVE_NUMBA:
                 m[r, f] = mm
                 v[r, f] = vv
                 param[r, f] -= lr * (mm / bc1) / (np.sqrt(vv / bc2) + eps)
-

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
 LENS_MODELS = ("opencv", "fisheye")
 
 
@@ -41,7 +40,15 @@ class Distortion:
         return not any((self.k1, self.k2, self.k3, self.k4, self.p1, self.p2))
 
     def as_dict(self) -> dict:
-        return {"model": self.model, "k1": self.k1, "k2": self.k2, "k3": self.k3, "k4": self.k4, "p1": self.p1, "p2": self.p2}
+        return {
+            "model": self.model,
+            "k1": self.k1,
+            "k2": self.k2,
+            "k3": self.k3,
+            "k4": self.k4,
+            "p1": self.p1,
+            "p2": self.p2,
+        }
 
 
 @dataclass
@@ -59,14 +66,15 @@ class Camera:
     distortion: Distortion | None = None  # None: a pinhole (Blender's cameras, NeRF-synthetic data)
 
     @classmethod
-    def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float, name: str = "") -> "Camera":
+    def from_fov(cls, c2w, width: int, height: int, camera_angle_x: float, name: str = "") -> Camera:
         """NeRF-synthetic camera: square pixels, focal from the horizontal field of view, centred."""
         f = 0.5 * width / math.tan(0.5 * camera_angle_x)
         return cls(np.asarray(c2w, dtype=np.float64), f, f, width / 2.0, height / 2.0, int(width), int(height), name)
 
     @classmethod
-    def looking_at_box(cls, aabb, width: int, height: int, direction=(0.65, -0.61, 0.44), fov_deg: float = 40.0,
-                       name: str = "box view") -> "Camera":
+    def looking_at_box(
+        cls, aabb, width: int, height: int, direction=(0.65, -0.61, 0.44), fov_deg: float = 40.0, name: str = "box view"
+    ) -> Camera:
         """A camera looking at the centre of a box ((2,3): low, high corners) from `direction` (by default
         where Blender's default camera stands: front right, above), Z up, just far enough that the
         box's bounding sphere fills the shorter image side of a `fov_deg` view."""

@@ -38,14 +38,20 @@ def save_nerf(model: NerfModel, path, trainer_state: dict | None = None) -> None
         "version": VERSION,
         "config": model.config.to_dict(),
         "state": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "occupancy": {"density": model.occupancy.density.cpu(), "mask": model.occupancy.mask.cpu(),
-                      "resolution": model.occupancy.resolution},
+        "occupancy": {
+            "density": model.occupancy.density.cpu(),
+            "mask": model.occupancy.mask.cpu(),
+            "resolution": model.occupancy.resolution,
+        },
     }
     if model.occupancy.allowed is not None:
         payload["occupancy"]["allowed"] = model.occupancy.allowed.cpu()
     if model.background is not None:
-        payload["background"] = {"density": model.background.density.cpu(), "mask": model.background.mask.cpu(),
-                                 "resolution": model.background.resolution}
+        payload["background"] = {
+            "density": model.background.density.cpu(),
+            "mask": model.background.mask.cpu(),
+            "resolution": model.background.resolution,
+        }
     if trainer_state is not None:
         payload["trainer"] = trainer_state
     atomic_write(path, lambda f: torch.save(payload, f))
@@ -58,14 +64,28 @@ def read_checkpoint(path) -> dict:
         raise EngineError(f"{path}: checkpoint not found")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, zipfile.BadZipFile, EOFError, ValueError, OSError,
-            AttributeError, IndexError, KeyError, TypeError) as exc:
+    except (
+        RuntimeError,
+        pickle.UnpicklingError,
+        zipfile.BadZipFile,
+        EOFError,
+        ValueError,
+        OSError,
+        AttributeError,
+        IndexError,
+        KeyError,
+        TypeError,
+    ) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise EngineError(f"{path}: not a readable NeRF checkpoint (corrupt, truncated or foreign file: {first[:160]})") from None
+        raise EngineError(
+            f"{path}: not a readable NeRF checkpoint (corrupt, truncated or foreign file: {first[:160]})"
+        ) from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise EngineError(f"{path}: not a blender_nerf_deform NeRF checkpoint (no format marker {FORMAT!r})")
     if data.get("version") != VERSION:
-        raise EngineError(f"{path}: checkpoint format version {data.get('version')!r}, this engine reads version {VERSION}")
+        raise EngineError(
+            f"{path}: checkpoint format version {data.get('version')!r}, this engine reads version {VERSION}"
+        )
     for key in ("config", "state", "occupancy"):
         if key not in data:
             raise EngineError(f"{path}: checkpoint lacks `{key}`")
@@ -94,7 +114,9 @@ def _check_arrays(data: dict, path) -> None:
         if not isinstance(value, torch.Tensor):
             raise EngineError(f"{path}: checkpoint `state.{name}` is not a tensor")
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            raise EngineError(f"checkpoint {path} has non-finite weights (a diverged training run?): `{name}` holds NaN or inf")
+            raise EngineError(
+                f"checkpoint {path} has non-finite weights (a diverged training run?): `{name}` holds NaN or inf"
+            )
     density = _tensor(data["occupancy"], "density", path, "occupancy")
     if not density.is_floating_point() or not bool(torch.isfinite(density).all()):
         raise EngineError(f"{path}: checkpoint `occupancy.density` holds NaN or inf (a diverged training run?)")
@@ -125,8 +147,10 @@ def load_nerf(path, device="auto") -> NerfModel:
         model.occupancy.mask = occ["mask"].bool().reshape(-1)
         n_cells = model.occupancy.resolution**3
         if model.occupancy.mask.numel() != n_cells or model.occupancy.density.numel() != n_cells:
-            raise ValueError(f"occupancy grid of {model.occupancy.mask.numel()} cells, the config's "
-                             f"occ_resolution {config.occ_resolution} needs {n_cells}")
+            raise ValueError(
+                f"occupancy grid of {model.occupancy.mask.numel()} cells, the config's "
+                f"occ_resolution {config.occ_resolution} needs {n_cells}"
+            )
         if occ.get("allowed") is not None:
             allowed = occ["allowed"]
             if not isinstance(allowed, torch.Tensor) or allowed.numel() != n_cells:
@@ -139,10 +163,14 @@ def load_nerf(path, device="auto") -> NerfModel:
             model.background.density = bg["density"].float().reshape(-1)
             model.background.mask = bg["mask"].bool().reshape(-1) & model.background._shell
             if model.background.density.numel() != n_cells:
-                raise ValueError(f"background grid of {model.background.density.numel()} cells, the config's "
-                                 f"occ_resolution {config.occ_resolution} needs {n_cells}")
+                raise ValueError(
+                    f"background grid of {model.background.density.numel()} cells, the config's "
+                    f"occ_resolution {config.occ_resolution} needs {n_cells}"
+                )
     except EngineError as exc:
         raise EngineError(f"{path}: {exc}") from None
     except (RuntimeError, TypeError, ValueError, KeyError) as exc:
-        raise EngineError(f"{path}: checkpoint does not match this engine's model ({str(exc).splitlines()[0][:160]})") from None
+        raise EngineError(
+            f"{path}: checkpoint does not match this engine's model ({str(exc).splitlines()[0][:160]})"
+        ) from None
     return model.to(dev).eval()

@@ -85,8 +85,10 @@ def read(path: Path, downscale: int, load_images: bool) -> FrameSource:
     images = next((c for c in candidates if c.is_dir()), None)
     if images is None:
         if load_images:
-            raise EngineError(f"{model}: no folder of photos beside the COLMAP model (looked for "
-                              f"{', '.join(str(c) for c in dict.fromkeys(candidates))})")
+            raise EngineError(
+                f"{model}: no folder of photos beside the COLMAP model (looked for "
+                f"{', '.join(str(c) for c in dict.fromkeys(candidates))})"
+            )
         images = candidates[0]
     c2ws = np.stack([c["c2w"] for c in cams])
     T = orientation(c2ws, reconstruction_points(rec))
@@ -109,5 +111,14 @@ def read(path: Path, downscale: int, load_images: bool) -> FrameSource:
     if not cameras:
         raise EngineError(f"{model}: none of its {len(cams)} registered images is in {images} (first: {missing[0]})")
     meta = {"images_folder": str(images), "similarity": T.tolist(), "points": int(rec.num_points3D())}
-    return FrameSource(cameras, paths, str(model), "colmap", extra_downscale=downscale, meta=meta,
-                       size_keys="COLMAP's camera says", missing_rel=missing, n_listed=len(cams))
+    return FrameSource(
+        cameras,
+        paths,
+        str(model),
+        "colmap",
+        extra_downscale=downscale,
+        meta=meta,
+        size_keys="COLMAP's camera says",
+        missing_rel=missing,
+        n_listed=len(cams),
+    )

@@ -50,7 +50,6 @@ if backend.HAVE_NUMBA:
             out[n, 1] = (uy * s + np.float32(2.0)) * np.float32(0.25)
             out[n, 2] = (uz * s + np.float32(2.0)) * np.float32(0.25)
 
-
     @njit(cache=True, fastmath=FAST)
     def _composite_round(sigma, dt, ray_idx, transmittance, threshold, weights, selected):
         n_sel = 0
@@ -80,23 +79,47 @@ if backend.HAVE_NUMBA:
             depth[r] += w * t[s]
 
 
-def composite_round(sigma: torch.Tensor, dt: torch.Tensor, ray_idx: torch.Tensor, transmittance: torch.Tensor,
-                    threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
+def composite_round(
+    sigma: torch.Tensor, dt: torch.Tensor, ray_idx: torch.Tensor, transmittance: torch.Tensor, threshold: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """One round of a frame's samples (sorted by ray, then t, within each ray): (weights (S,) float32, indices
     of the samples whose weight exceeds `threshold`); `transmittance` (float64, per ray) is carried on in place."""
     n = sigma.shape[0]
     weights = np.empty(n, dtype=np.float32)
     selected = np.empty(n, dtype=np.int64)
-    k = _composite_round(sigma.contiguous().numpy(), dt.contiguous().numpy(), ray_idx.contiguous().numpy(),
-                         transmittance.numpy(), float(threshold), weights, selected)
+    k = _composite_round(
+        sigma.contiguous().numpy(),
+        dt.contiguous().numpy(),
+        ray_idx.contiguous().numpy(),
+        transmittance.numpy(),
+        float(threshold),
+        weights,
+        selected,
+    )
     return torch.from_numpy(weights), torch.from_numpy(selected[:k])
 
 
-def accumulate(selected: torch.Tensor, ray_idx: torch.Tensor, weights: torch.Tensor, t: torch.Tensor, rgb: torch.Tensor,
-               color: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> None:
+def accumulate(
+    selected: torch.Tensor,
+    ray_idx: torch.Tensor,
+    weights: torch.Tensor,
+    t: torch.Tensor,
+    rgb: torch.Tensor,
+    color: torch.Tensor,
+    alpha: torch.Tensor,
+    depth: torch.Tensor,
+) -> None:
     """color[r] += w rgb, alpha[r] += w, depth[r] += w t for the selected samples (rgb: one row per selected)."""
-    _accumulate(selected.contiguous().numpy(), ray_idx.contiguous().numpy(), weights.contiguous().numpy(),
-                t.contiguous().numpy(), rgb.contiguous().numpy(), color.numpy(), alpha.numpy(), depth.numpy())
+    _accumulate(
+        selected.contiguous().numpy(),
+        ray_idx.contiguous().numpy(),
+        weights.contiguous().numpy(),
+        t.contiguous().numpy(),
+        rgb.contiguous().numpy(),
+        color.numpy(),
+        alpha.numpy(),
+        depth.numpy(),
+    )
 
 
 def exclusive_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor) -> torch.Tensor:
@@ -109,6 +132,7 @@ def exclusive_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor) -> torch.T
 def contract_normalize(points: torch.Tensor, center: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
     """(contract((p - center) / half) + 2) / 4: an unbounded NeRF's hash-grid coordinates in [0, 1]^3."""
     out = np.empty((points.shape[0], 3), dtype=np.float32)
-    _contract_normalize(points.detach().contiguous().numpy(), center.contiguous().numpy(),
-                        (1.0 / half).contiguous().numpy(), out)
+    _contract_normalize(
+        points.detach().contiguous().numpy(), center.contiguous().numpy(), (1.0 / half).contiguous().numpy(), out
+    )
     return torch.from_numpy(out)

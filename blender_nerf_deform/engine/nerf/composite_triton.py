@@ -26,8 +26,23 @@ BLOCK = 4096 if os.environ.get("TRITON_INTERPRET", "0") == "1" else 64
 
 
 @triton.jit
-def _composite(sigma_ptr, dt_ptr, t_ptr, rgb_ptr, first_ptr, counts_ptr, alive_ptr, trans_ptr, color_ptr,
-               alpha_ptr, depth_ptr, n_color_ptr, n_rows, threshold, BLOCK: tl.constexpr):
+def _composite(
+    sigma_ptr,
+    dt_ptr,
+    t_ptr,
+    rgb_ptr,
+    first_ptr,
+    counts_ptr,
+    alive_ptr,
+    trans_ptr,
+    color_ptr,
+    alpha_ptr,
+    depth_ptr,
+    n_color_ptr,
+    n_rows,
+    threshold,
+    BLOCK: tl.constexpr,
+):
     rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = rows < n_rows
     first = tl.load(first_ptr + rows, mask=valid, other=0)
@@ -70,8 +85,9 @@ def _composite(sigma_ptr, dt_ptr, t_ptr, rgb_ptr, first_ptr, counts_ptr, alive_p
     tl.atomic_add(n_color_ptr, tl.sum(lit_count, axis=0))
 
 
-def composite_round(sigma, dt, t, rgb, first, counts, alive, transmittance, color, alpha, depth,
-                    threshold: float) -> torch.Tensor:
+def composite_round(
+    sigma, dt, t, rgb, first, counts, alive, transmittance, color, alpha, depth, threshold: float
+) -> torch.Tensor:
     """Adds a round's samples (flat, sorted by row then t; row i's from first[i], counts[i] of them, ray
     alive[i]) into color (N, 3), alpha and depth (N,) and carries `transmittance` (N,) float64 on, in place;
     returns the number of samples above the weight threshold (a 0-dim tensor on the device)."""
@@ -80,9 +96,22 @@ def composite_round(sigma, dt, t, rgb, first, counts, alive, transmittance, colo
     if n_rows:
         with kernel_launch("composite"):
             _composite[(triton.cdiv(n_rows, BLOCK),)](
-                sigma.contiguous(), dt.contiguous(), t.contiguous(), rgb.contiguous(), first.contiguous(),
-                counts.contiguous(), alive.contiguous(), transmittance, color, alpha, depth, n_color, n_rows,
-                float(threshold), BLOCK=BLOCK)
+                sigma.contiguous(),
+                dt.contiguous(),
+                t.contiguous(),
+                rgb.contiguous(),
+                first.contiguous(),
+                counts.contiguous(),
+                alive.contiguous(),
+                transmittance,
+                color,
+                alpha,
+                depth,
+                n_color,
+                n_rows,
+                float(threshold),
+                BLOCK=BLOCK,
+            )
     return n_color
 
 
@@ -90,8 +119,22 @@ def composite_round(sigma, dt, t, rgb, first, counts, alive, transmittance, colo
 
 
 @triton.jit
-def _train_forward(sigma_ptr, dt_ptr, t_ptr, rgb_ptr, first_ptr, counts_ptr, alive_ptr, w_ptr, color_ptr,
-                   alpha_ptr, depth_ptr, n_rows, size, BLOCK: tl.constexpr):
+def _train_forward(
+    sigma_ptr,
+    dt_ptr,
+    t_ptr,
+    rgb_ptr,
+    first_ptr,
+    counts_ptr,
+    alive_ptr,
+    w_ptr,
+    color_ptr,
+    alpha_ptr,
+    depth_ptr,
+    n_rows,
+    size,
+    BLOCK: tl.constexpr,
+):
     rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = rows < n_rows
     first = tl.load(first_ptr + rows, mask=valid, other=0)
@@ -138,8 +181,25 @@ def _sensitivity(s, on, ray, w_ptr, rgb_ptr, t_ptr, gw_ptr, gc_ptr, ga_ptr, gd_p
 
 
 @triton.jit
-def _train_backward(sigma_ptr, dt_ptr, t_ptr, rgb_ptr, first_ptr, counts_ptr, alive_ptr, w_ptr, gw_ptr, gc_ptr,
-                    ga_ptr, gd_ptr, gsigma_ptr, grgb_ptr, n_rows, size, BLOCK: tl.constexpr):
+def _train_backward(
+    sigma_ptr,
+    dt_ptr,
+    t_ptr,
+    rgb_ptr,
+    first_ptr,
+    counts_ptr,
+    alive_ptr,
+    w_ptr,
+    gw_ptr,
+    gc_ptr,
+    ga_ptr,
+    gd_ptr,
+    gsigma_ptr,
+    grgb_ptr,
+    n_rows,
+    size,
+    BLOCK: tl.constexpr,
+):
     """dL/dtau_k = e_k T_(k+1) - sum over the later samples i of e_i w_i (T_(k+1): the transmittance past k)."""
     rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = rows < n_rows
@@ -153,7 +213,8 @@ def _train_backward(sigma_ptr, dt_ptr, t_ptr, rgb_ptr, first_ptr, counts_ptr, al
         on = valid & (i < count)
         s = first + i
         total += _sensitivity(s, on, ray, w_ptr, rgb_ptr, t_ptr, gw_ptr, gc_ptr, ga_ptr, gd_ptr) * tl.load(
-            w_ptr + s, mask=on, other=0.0)
+            w_ptr + s, mask=on, other=0.0
+        )
         i += 1
     acc = tl.zeros((BLOCK,), dtype=tl.float64)
     done = tl.zeros((BLOCK,), dtype=tl.float32)
@@ -189,8 +250,9 @@ class CompositeTrain(torch.autograd.Function):
         depth = torch.zeros(n_rays, dtype=torch.float32, device=dev)
         if n_rows and size:
             with kernel_launch("composite_train"):
-                _train_forward[(triton.cdiv(n_rows, BLOCK),)](sigma, dt, t, rgb, first, counts, alive, w, color,
-                                                               alpha, depth, n_rows, size, BLOCK=BLOCK)
+                _train_forward[(triton.cdiv(n_rows, BLOCK),)](
+                    sigma, dt, t, rgb, first, counts, alive, w, color, alpha, depth, n_rows, size, BLOCK=BLOCK
+                )
         ctx.save_for_backward(sigma, rgb, dt, t, first, counts, alive, w)
         ctx.n_rays = n_rays
         return color, alpha, depth, w
@@ -209,7 +271,23 @@ class CompositeTrain(torch.autograd.Function):
         n_rows, size = first.shape[0], sigma.shape[0]
         if n_rows and size:
             with kernel_launch("composite_train_backward"):
-                _train_backward[(triton.cdiv(n_rows, BLOCK),)](sigma, dt, t, rgb, first, counts, alive, w, g_w,
-                                                                g_color, g_alpha, g_depth, g_sigma, g_rgb, n_rows,
-                                                                size, BLOCK=BLOCK)
+                _train_backward[(triton.cdiv(n_rows, BLOCK),)](
+                    sigma,
+                    dt,
+                    t,
+                    rgb,
+                    first,
+                    counts,
+                    alive,
+                    w,
+                    g_w,
+                    g_color,
+                    g_alpha,
+                    g_depth,
+                    g_sigma,
+                    g_rgb,
+                    n_rows,
+                    size,
+                    BLOCK=BLOCK,
+                )
         return g_sigma, g_rgb, None, None, None, None, None, None

@@ -79,10 +79,27 @@ import numpy as np
 
 from ..errors import EngineError
 from ..sfm import photo_names
+from .frames import (
+    FORMAT_LABELS,
+    FrameSource,
+    NerfDataset,
+    camera_from_keys,
+    check_c2w,
+    derive_aabb,
+    downscale_image,
+    downscale_mask,
+    find_image,
+    frame_name,
+    image_size,
+    laplacian_sharpness,
+    lens_of,
+    load_image,
+    load_mask,
+    number,
+    pixels,
+    scaled_camera,
+)
 from .silhouettes import MASK_MEANINGS, hull_box, mask_meaning
-from .frames import (FORMAT_LABELS, FrameSource, NerfDataset, downscale_image, downscale_mask, find_image, frame_name, image_size,
-                     laplacian_sharpness, lens_of, load_image, load_mask, number, pixels, camera_from_keys,
-                     check_c2w, derive_aabb, scaled_camera)
 
 __all__ = ["FORMAT_LABELS", "NerfDataset", "load_dataset"]
 
@@ -119,8 +136,10 @@ def _transforms_format(meta: dict, frames: list) -> str:
 def _aabb_scale(meta: dict, where: str) -> float:
     s = number(meta, "aabb_scale", where)
     if not (1 <= s <= NGP_MAX_AABB_SCALE and s == int(s) and (int(s) & (int(s) - 1)) == 0):
-        raise EngineError(f"{where}: `aabb_scale` = {meta['aabb_scale']!r} must be a power of two from 1 to "
-                          f"{NGP_MAX_AABB_SCALE} (instant-ngp's scene is that many unit cubes wide)")
+        raise EngineError(
+            f"{where}: `aabb_scale` = {meta['aabb_scale']!r} must be a power of two from 1 to "
+            f"{NGP_MAX_AABB_SCALE} (instant-ngp's scene is that many unit cubes wide)"
+        )
     return s
 
 
@@ -150,6 +169,7 @@ def _transforms_boxes(meta: dict, where: str):
             raise EngineError(f"{where}: `offset` must be a number or [x, y, z], got {meta['offset']!r}") from None
         if not np.isfinite(offset).all():
             raise EngineError(f"{where}: `offset` {meta['offset']!r} is not finite")
+
         # The cubes are centred on q = 0.5 on every axis, so the axis cycle leaves them unchanged:
         # only p = (q - offset) / scale, per json axis.
         def back(lo, hi):
@@ -244,13 +264,26 @@ def _read_transforms(jpath: Path, downscale: int, load_images: bool) -> FrameSou
         raise EngineError(f"{jpath}: none of its {len(frames)} frames has an image file (first: {root / missing[0]})")
     if inner is not None and "aabb" not in meta:
         inner = _grown_to_the_cameras(inner, aabb, cameras)
-    return FrameSource(cameras, paths, str(jpath), _transforms_format(meta, frames), aabb, inner, downscale,
-                       masks if any(m is not None for m in masks) else None,
-                       sharpness if all(s is not None for s in sharpness) else None,
-                       meta, "`w`/`h` say", missing, len(frames))
+    return FrameSource(
+        cameras,
+        paths,
+        str(jpath),
+        _transforms_format(meta, frames),
+        aabb,
+        inner,
+        downscale,
+        masks if any(m is not None for m in masks) else None,
+        sharpness if all(s is not None for s in sharpness) else None,
+        meta,
+        "`w`/`h` say",
+        missing,
+        len(frames),
+    )
 
 
-def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float, masks_asked: str = "auto") -> NerfDataset:
+def _finish(
+    src: FrameSource, load_images: bool, min_sharpness_quantile: float, masks_asked: str = "auto"
+) -> NerfDataset:
     """Images, masks, boxes, sharpness filter: the part every format shares."""
     k = src.extra_downscale
     images, masks, size = [], [], None
@@ -261,15 +294,18 @@ def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float, 
             if size is None:
                 size = (h, w)
             elif (h, w) != size:
-                raise EngineError(f"{path}: image is {w}x{h}, the first frame's is "
-                                  f"{size[1]}x{size[0]}: all images must have the same size")
+                raise EngineError(
+                    f"{path}: image is {w}x{h}, the first frame's is "
+                    f"{size[1]}x{size[0]}: all images must have the same size"
+                )
             if (w, h) != (cam.width, cam.height):
                 raise EngineError(f"{path}: image is {w}x{h} but {src.size_keys} {cam.width}x{cam.height}")
             if src.mask_paths is not None:
                 mask = load_mask(mask_path) if mask_path is not None else np.ones((h, w), bool)
                 if mask.shape != (h, w):
-                    raise EngineError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {path} "
-                                      f"is {w}x{h}")
+                    raise EngineError(
+                        f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {path} is {w}x{h}"
+                    )
                 masks.append(mask)
             images.append(img)
     meaning = why = None
@@ -283,8 +319,11 @@ def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float, 
         images = [downscale_image(img, k) for img in images]
         masks = [downscale_mask(mask, k) for mask in masks]
     if src.missing_rel:
-        print(f"warning: {src.source}: {len(src.missing_rel)} of {src.n_listed} frames have no image file and are "
-              f"skipped (first: {src.missing_rel[0]})", file=sys.stderr)
+        print(
+            f"warning: {src.source}: {len(src.missing_rel)} of {src.n_listed} frames have no image file and are "
+            f"skipped (first: {src.missing_rel[0]})",
+            file=sys.stderr,
+        )
     cameras = [scaled_camera(c, k) for c in src.cameras]
     aabb = src.aabb if src.aabb is not None else derive_aabb(cameras)
     inner = src.inner_aabb if src.inner_aabb is not None else aabb.copy()
@@ -293,14 +332,26 @@ def _finish(src: FrameSource, load_images: bool, min_sharpness_quantile: float, 
         # The object is all there is: its box is what the silhouettes carve, within the cameras' reach.
         box = hull_box(cameras, [img[..., 3] > 0.5 for img in imgs], derive_aabb(cameras))
         if box is None:
-            raise EngineError(f"{src.source}: the object masks leave no point inside all of them (are the masks "
-                              "inverted, or the poses not the photos'?); pass --masks ignore to train the photos "
-                              "with the masked pixels skipped")
+            raise EngineError(
+                f"{src.source}: the object masks leave no point inside all of them (are the masks "
+                "inverted, or the poses not the photos'?); pass --masks ignore to train the photos "
+                "with the masked pixels skipped"
+            )
         aabb, inner = box, box.copy()
-    ds = NerfDataset(cameras, np.asarray(aabb, np.float32), [c.name for c in cameras], imgs, src.source,
-                     bool((imgs[..., 3] < 1).any()) if imgs is not None else src.source_format == "nerf-synthetic",
-                     src.meta, np.asarray(inner, np.float32), np.stack(masks) if masks else None, src.source_format,
-                     meaning, why)
+    ds = NerfDataset(
+        cameras,
+        np.asarray(aabb, np.float32),
+        [c.name for c in cameras],
+        imgs,
+        src.source,
+        bool((imgs[..., 3] < 1).any()) if imgs is not None else src.source_format == "nerf-synthetic",
+        src.meta,
+        np.asarray(inner, np.float32),
+        np.stack(masks) if masks else None,
+        src.source_format,
+        meaning,
+        why,
+    )
     if min_sharpness_quantile:
         ds = _drop_blurry(ds, src.sharpness, min_sharpness_quantile)
     return ds
@@ -315,17 +366,23 @@ def _drop_blurry(ds: NerfDataset, sharpness, q: float) -> NerfDataset:
     if n_drop == 0:
         return ds
     order = np.argsort(np.asarray(sharpness, np.float64), kind="stable")
-    print(f"note: {ds.source}: dropped the {n_drop} blurriest of {len(ds)} frames (sharpness below "
-          f"{sharpness[order[n_drop]]:.4g})", file=sys.stderr)
+    print(
+        f"note: {ds.source}: dropped the {n_drop} blurriest of {len(ds)} frames (sharpness below "
+        f"{sharpness[order[n_drop]]:.4g})",
+        file=sys.stderr,
+    )
     return ds.subset(sorted(order[n_drop:].tolist()))
 
 
-_LOOKED_FOR = ("transforms.json (instant-ngp, nerfstudio, NeRF-synthetic), poses_bounds.npy (LLFF), a COLMAP model "
-               "(cameras, images, points3D .bin/.txt here, in sparse/0/, sparse/ or 0/)")
+_LOOKED_FOR = (
+    "transforms.json (instant-ngp, nerfstudio, NeRF-synthetic), poses_bounds.npy (LLFF), a COLMAP model "
+    "(cameras, images, points3D .bin/.txt here, in sparse/0/, sparse/ or 0/)"
+)
 
 
-def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpness_quantile: float = 0.0,
-                 masks: str = "auto") -> NerfDataset:
+def load_dataset(
+    path, downscale: int = 1, load_images: bool = True, min_sharpness_quantile: float = 0.0, masks: str = "auto"
+) -> NerfDataset:
     """Load a dataset in any form the module docstring lists. Raises EngineError naming the file/key at fault.
 
     `min_sharpness_quantile` (train's --drop-blurry): drop that fraction of the frames, the blurriest.
@@ -342,23 +399,33 @@ def load_dataset(path, downscale: int = 1, load_images: bool = True, min_sharpne
     p = Path(path)
     if not p.exists():
         raise EngineError(f"{p}: no such file or folder")
-    if p.is_file() and p.suffix.lower() == ".json" or p.is_dir() and any(
-            (p / n).is_file() for n in ("transforms.json", "transforms_train.json")):
+    if (
+        p.is_file()
+        and p.suffix.lower() == ".json"
+        or p.is_dir()
+        and any((p / n).is_file() for n in ("transforms.json", "transforms_train.json"))
+    ):
         src = _read_transforms(_resolve_json(p), downscale, load_images)
     elif llff.find(p) is not None:
         src = llff.read(p, downscale, load_images)
     elif colmap_model.find(p) is not None:
         src = colmap_model.read(p, downscale, load_images)
     elif p.is_dir() and photo_names(p):
-        raise EngineError(f"{p}: {len(photo_names(p))} photos and no cameras: find them first with `prepare --images "
-                          f"{p} --out DATASET_DIR` (structure from motion), then train on DATASET_DIR; in Blender, "
-                          "Import Photos does both")
+        raise EngineError(
+            f"{p}: {len(photo_names(p))} photos and no cameras: find them first with `prepare --images "
+            f"{p} --out DATASET_DIR` (structure from motion), then train on DATASET_DIR; in Blender, "
+            "Import Photos does both"
+        )
     elif p.is_dir():
-        raise EngineError(f"{p}: no dataset in this folder: no transforms.json, and no poses_bounds.npy or COLMAP "
-                          f"model; looked for {_LOOKED_FOR}")
+        raise EngineError(
+            f"{p}: no dataset in this folder: no transforms.json, and no poses_bounds.npy or COLMAP "
+            f"model; looked for {_LOOKED_FOR}"
+        )
     else:
-        raise EngineError(f"{p}: not a dataset file: give a transforms.json, LLFF's poses_bounds.npy, a COLMAP "
-                          "model file, or the folder holding one")
+        raise EngineError(
+            f"{p}: not a dataset file: give a transforms.json, LLFF's poses_bounds.npy, a COLMAP "
+            "model file, or the folder holding one"
+        )
     if masks not in MASK_MEANINGS:
         raise EngineError(f"--masks {masks!r}: one of {', '.join(MASK_MEANINGS)}")
     return _finish(src, load_images, float(q), masks)

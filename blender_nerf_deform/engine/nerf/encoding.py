@@ -49,8 +49,15 @@ class HashEncoding(torch.nn.Module):
     `offsets[l]` is the first row of level l.
     """
 
-    def __init__(self, n_levels: int = 8, n_features: int = 4, log2_table_size: int = 18,
-                 base_resolution: int = 16, finest_resolution: int = 1024, init_scale: float = 1e-4):
+    def __init__(
+        self,
+        n_levels: int = 8,
+        n_features: int = 4,
+        log2_table_size: int = 18,
+        base_resolution: int = 16,
+        finest_resolution: int = 1024,
+        init_scale: float = 1e-4,
+    ):
         super().__init__()
         self.n_levels = n_levels
         self.n_features = n_features
@@ -156,8 +163,13 @@ class HashEncoding(torch.nn.Module):
         """The Triton kernels (backend.use_triton): float32, a power-of-two feature count, and no gradient in
         the positions (the torch path carries that one)."""
         f = self.n_features
-        return (backend.use_triton(x.device) and x.dtype == torch.float32 and self.table.dtype == torch.float32
-                and not x.requires_grad and f & (f - 1) == 0)
+        return (
+            backend.use_triton(x.device)
+            and x.dtype == torch.float32
+            and self.table.dtype == torch.float32
+            and not x.requires_grad
+            and f & (f - 1) == 0
+        )
 
     def reuse(self, encoded: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """The encoding of x, given `encoded` = self(x) computed without gradients: on the CPU kernel path
@@ -174,8 +186,12 @@ class HashEncoding(torch.nn.Module):
         """The torch formulation (CUDA, and CPU without numba): one embedding_bag over all levels x corners."""
         n = x.shape[0]
         idx, w = self.indices_and_weights(x)
-        out = F.embedding_bag(idx.reshape(n * self.n_levels, 8), self.table,
-                              per_sample_weights=w.reshape(n * self.n_levels, 8).to(self.table.dtype), mode="sum")
+        out = F.embedding_bag(
+            idx.reshape(n * self.n_levels, 8),
+            self.table,
+            per_sample_weights=w.reshape(n * self.n_levels, 8).to(self.table.dtype),
+            mode="sum",
+        )
         return out.reshape(n, self.n_levels * self.n_features)
 
 
@@ -186,7 +202,7 @@ def reference_hash_encode(enc: HashEncoding, x: torch.Tensor, tables: list[torch
     one (size_l, F) tensor per level) so the two can be compared exactly.
     """
     if tables is None:
-        tables = [enc.table[int(o): int(o) + s] for o, s in zip(enc.offsets, enc.level_sizes)]
+        tables = [enc.table[int(o) : int(o) + s] for o, s in zip(enc.offsets, enc.level_sizes)]
     x = x.clamp(0.0, 1.0)
     feats = []
     for lvl, res in enumerate(enc.resolutions):
@@ -217,8 +233,13 @@ def sh_encode(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
 
     The basis and constants of instant-ngp / tiny-cuda-nn's SphericalHarmonics encoding.
     """
-    if (d.device.type == "cpu" and d.dtype == torch.float32 and not d.requires_grad and backend.use_kernels(d.device)
-            and 1 <= degree <= 4):
+    if (
+        d.device.type == "cpu"
+        and d.dtype == torch.float32
+        and not d.requires_grad
+        and backend.use_kernels(d.device)
+        and 1 <= degree <= 4
+    ):
         return encoding_kernels.sh_forward(d, degree)
     if d.dtype == torch.float32 and not d.requires_grad and 1 <= degree <= 4 and backend.use_triton(d.device):
         from . import sh_triton
@@ -230,11 +251,21 @@ def sh_encode(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
         out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
     if degree > 2:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out += [1.0925484305920792 * xy, -1.0925484305920792 * yz, 0.94617469575755997 * zz - 0.31539156525251999,
-                -1.0925484305920792 * xz, 0.54627421529603959 * xx - 0.54627421529603959 * yy]
+        out += [
+            1.0925484305920792 * xy,
+            -1.0925484305920792 * yz,
+            0.94617469575755997 * zz - 0.31539156525251999,
+            -1.0925484305920792 * xz,
+            0.54627421529603959 * xx - 0.54627421529603959 * yy,
+        ]
     if degree > 3:
-        out += [0.59004358992664352 * y * (-3.0 * xx + yy), 2.8906114426405538 * xy * z,
-                0.45704579946446572 * y * (1.0 - 5.0 * zz), 0.3731763325901154 * z * (5.0 * zz - 3.0),
-                0.45704579946446572 * x * (1.0 - 5.0 * zz), 1.4453057213202769 * z * (xx - yy),
-                0.59004358992664352 * x * (-xx + 3.0 * yy)]
+        out += [
+            0.59004358992664352 * y * (-3.0 * xx + yy),
+            2.8906114426405538 * xy * z,
+            0.45704579946446572 * y * (1.0 - 5.0 * zz),
+            0.3731763325901154 * z * (5.0 * zz - 3.0),
+            0.45704579946446572 * x * (1.0 - 5.0 * zz),
+            1.4453057213202769 * z * (xx - yy),
+            0.59004358992664352 * x * (-xx + 3.0 * yy),
+        ]
     return torch.stack(out, dim=-1)

@@ -78,8 +78,24 @@ if backend.HAVE_NUMBA:
         uy = 1.0 - ty
         uz = 1.0 - tz
         a00, a10, a01, a11 = ux * uy, tx * uy, ux * ty, tx * ty
-        return (r0, r1, r2, r3, r4, r5, r6, r7,
-                a00 * uz, a10 * uz, a01 * uz, a11 * uz, a00 * tz, a10 * tz, a01 * tz, a11 * tz)
+        return (
+            r0,
+            r1,
+            r2,
+            r3,
+            r4,
+            r5,
+            r6,
+            r7,
+            a00 * uz,
+            a10 * uz,
+            a01 * uz,
+            a11 * uz,
+            a00 * tz,
+            a10 * tz,
+            a01 * tz,
+            a11 * tz,
+        )
 
     @njit(parallel=True, cache=True, fastmath=FAST)
     def _hash_forward(x, table, res_arr, dense_arr, size_arr, off_arr, out):
@@ -101,17 +117,32 @@ if backend.HAVE_NUMBA:
                 col = lvl * nf
                 for i in range(start, stop):
                     r0, r1, r2, r3, r4, r5, r6, r7, w0, w1, w2, w3, w4, w5, w6, w7 = _corners(
-                        x[i, 0], x[i, 1], x[i, 2], res, dense, size, off)
+                        x[i, 0], x[i, 1], x[i, 2], res, dense, size, off
+                    )
                     if nf == 4:  # the trainer's configuration: a constant trip count the compiler unrolls
                         for f in range(4):
-                            out[i, col + f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
-                                               + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
-                                               + w6 * table[r6, f] + w7 * table[r7, f])
+                            out[i, col + f] = (
+                                w0 * table[r0, f]
+                                + w1 * table[r1, f]
+                                + w2 * table[r2, f]
+                                + w3 * table[r3, f]
+                                + w4 * table[r4, f]
+                                + w5 * table[r5, f]
+                                + w6 * table[r6, f]
+                                + w7 * table[r7, f]
+                            )
                     else:
                         for f in range(nf):
-                            out[i, col + f] = (w0 * table[r0, f] + w1 * table[r1, f] + w2 * table[r2, f]
-                                               + w3 * table[r3, f] + w4 * table[r4, f] + w5 * table[r5, f]
-                                               + w6 * table[r6, f] + w7 * table[r7, f])
+                            out[i, col + f] = (
+                                w0 * table[r0, f]
+                                + w1 * table[r1, f]
+                                + w2 * table[r2, f]
+                                + w3 * table[r3, f]
+                                + w4 * table[r4, f]
+                                + w5 * table[r5, f]
+                                + w6 * table[r6, f]
+                                + w7 * table[r7, f]
+                            )
 
     @njit(parallel=True, cache=True, fastmath=FAST)
     def _hash_backward(x, grad_out, res_arr, dense_arr, size_arr, off_arr, grad_table, touched):
@@ -129,7 +160,8 @@ if backend.HAVE_NUMBA:
             col = lvl * nf
             for i in range(n):
                 r0, r1, r2, r3, r4, r5, r6, r7, w0, w1, w2, w3, w4, w5, w6, w7 = _corners(
-                    x[i, 0], x[i, 1], x[i, 2], res, dense, size, off)
+                    x[i, 0], x[i, 1], x[i, 2], res, dense, size, off
+                )
                 for f in range(nf):
                     g = grad_out[i, col + f]
                     grad_table[r0, f] += w0 * g
@@ -148,7 +180,6 @@ if backend.HAVE_NUMBA:
                 touched[r5] = 1
                 touched[r6] = 1
                 touched[r7] = 1
-
 
     @njit(parallel=True, cache=True, fastmath=FAST)
     def _hash_backward_x(x, grad_out, table, res_arr, dense_arr, size_arr, off_arr, grad_x):
@@ -177,7 +208,8 @@ if backend.HAVE_NUMBA:
                 for i in range(start, stop):
                     px, py, pz = x[i, 0], x[i, 1], x[i, 2]
                     r0, r1, r2, r3, r4, r5, r6, r7, w0, w1, w2, w3, w4, w5, w6, w7 = _corners(
-                        px, py, pz, res, dense, size, off)
+                        px, py, pz, res, dense, size, off
+                    )
                     # s_c: the output gradient dotted with corner c's features.
                     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
                     for f in range(nf):
@@ -200,12 +232,15 @@ if backend.HAVE_NUMBA:
                     uy = 1.0 - ty
                     uz = 1.0 - tz
                     # d(weight of corner c)/dt_a: the product of the other two axes' factors, signed by c's bit a.
-                    grad_x[i, 0] += res * (uy * uz * (s1 - s0) + ty * uz * (s3 - s2) + uy * tz * (s5 - s4)
-                                           + ty * tz * (s7 - s6))
-                    grad_x[i, 1] += res * (ux * uz * (s2 - s0) + tx * uz * (s3 - s1) + ux * tz * (s6 - s4)
-                                           + tx * tz * (s7 - s5))
-                    grad_x[i, 2] += res * (ux * uy * (s4 - s0) + tx * uy * (s5 - s1) + ux * ty * (s6 - s2)
-                                           + tx * ty * (s7 - s3))
+                    grad_x[i, 0] += res * (
+                        uy * uz * (s1 - s0) + ty * uz * (s3 - s2) + uy * tz * (s5 - s4) + ty * tz * (s7 - s6)
+                    )
+                    grad_x[i, 1] += res * (
+                        ux * uz * (s2 - s0) + tx * uz * (s3 - s1) + ux * tz * (s6 - s4) + tx * tz * (s7 - s5)
+                    )
+                    grad_x[i, 2] += res * (
+                        ux * uy * (s4 - s0) + tx * uy * (s5 - s1) + ux * ty * (s6 - s2) + tx * ty * (s7 - s3)
+                    )
             for i in range(start, stop):
                 if not 0.0 < x[i, 0] < 1.0:
                     grad_x[i, 0] = 0.0
@@ -219,8 +254,16 @@ def positions_grad(x: torch.Tensor, grad_out: torch.Tensor, enc) -> torch.Tensor
     """dL/dx (N, 3) of the encoding at positions x given dL/d(encoding) (N, L*F), by `_hash_backward_x`."""
     arrs = enc._kernel_arrays
     grad_x = torch.empty(x.shape[0], 3, dtype=x.dtype)
-    _hash_backward_x(x.detach().contiguous().numpy(), grad_out.contiguous().numpy(), enc.table.detach().numpy(),
-                     arrs.res, arrs.dense, arrs.size, arrs.off, grad_x.numpy())
+    _hash_backward_x(
+        x.detach().contiguous().numpy(),
+        grad_out.contiguous().numpy(),
+        enc.table.detach().numpy(),
+        arrs.res,
+        arrs.dense,
+        arrs.size,
+        arrs.off,
+        grad_x.numpy(),
+    )
     return grad_x
 
 
@@ -284,8 +327,16 @@ def _encoding_backward(ctx, grad_out, positions_need_grad: bool):
     grad_out = grad_out.contiguous()
     # The positions' gradient reads the table as the forward did: before the table's own gradient is applied.
     grad_x = positions_grad(x, grad_out, enc) if positions_need_grad else None
-    _hash_backward(x.detach().contiguous().numpy(), grad_out.numpy(), arrs.res, arrs.dense, arrs.size,
-                   arrs.off, grad_table.numpy(), enc.touched_rows())
+    _hash_backward(
+        x.detach().contiguous().numpy(),
+        grad_out.numpy(),
+        arrs.res,
+        arrs.dense,
+        arrs.size,
+        arrs.off,
+        grad_table.numpy(),
+        enc.touched_rows(),
+    )
     # In fused-grad mode the gradient stays in the encoding's buffer for the lazy Adam.
     return grad_x, (None if enc.fused_grad else grad_table)
 

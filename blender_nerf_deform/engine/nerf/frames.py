@@ -19,11 +19,22 @@ from ..sfm.orient import axes_focus
 from .camera import Camera, Distortion
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_CAMERA_MODELS = {"PINHOLE": None, "SIMPLE_PINHOLE": None, "OPENCV": "opencv", "SIMPLE_RADIAL": "opencv",
-                  "RADIAL": "opencv", "OPENCV_FISHEYE": "fisheye"}
+_CAMERA_MODELS = {
+    "PINHOLE": None,
+    "SIMPLE_PINHOLE": None,
+    "OPENCV": "opencv",
+    "SIMPLE_RADIAL": "opencv",
+    "RADIAL": "opencv",
+    "OPENCV_FISHEYE": "fisheye",
+}
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
-FORMAT_LABELS = {"nerf-synthetic": "NeRF-synthetic transforms.json", "instant-ngp": "instant-ngp transforms.json",
-                 "nerfstudio": "nerfstudio transforms.json", "llff": "LLFF poses_bounds.npy", "colmap": "COLMAP model"}
+FORMAT_LABELS = {
+    "nerf-synthetic": "NeRF-synthetic transforms.json",
+    "instant-ngp": "instant-ngp transforms.json",
+    "nerfstudio": "nerfstudio transforms.json",
+    "llff": "LLFF poses_bounds.npy",
+    "colmap": "COLMAP model",
+}
 
 
 @dataclass
@@ -70,11 +81,15 @@ class NerfDataset:
         folder = self.meta.get("images_folder") if self.source_format in ("llff", "colmap") else None
         return f"{len(self)} frames ({label}{', ' + folder if folder else ''}) from {self.source}"
 
-    def subset(self, indices) -> "NerfDataset":
+    def subset(self, indices) -> NerfDataset:
         indices = list(indices)
-        return dataclasses.replace(self, cameras=[self.cameras[i] for i in indices], names=[self.names[i] for i in indices],
-                                   images=None if self.images is None else self.images[indices],
-                                   masks=None if self.masks is None else self.masks[indices])
+        return dataclasses.replace(
+            self,
+            cameras=[self.cameras[i] for i in indices],
+            names=[self.names[i] for i in indices],
+            images=None if self.images is None else self.images[indices],
+            masks=None if self.masks is None else self.masks[indices],
+        )
 
 
 @dataclass
@@ -128,20 +143,25 @@ def lens_of(d: dict, where: str) -> Distortion | None:
     model = d.get("camera_model")
     if model is not None:
         if model not in _CAMERA_MODELS:
-            raise EngineError(f"{where}: camera_model {model!r} is not supported "
-                              f"(supported: {', '.join(sorted(_CAMERA_MODELS))})")
+            raise EngineError(
+                f"{where}: camera_model {model!r} is not supported (supported: {', '.join(sorted(_CAMERA_MODELS))})"
+            )
         kind = _CAMERA_MODELS[model]
     else:
         kind = "fisheye" if d.get("is_fisheye") else "opencv"
     coefficients = {k: number(d, k, where) for k in _DISTORTION_KEYS if d.get(k) is not None}
     if kind is None:
         if any(coefficients.values()):
-            raise EngineError(f"{where}: camera_model {model} has no distortion, but the frame gives "
-                              f"{', '.join(k for k, v in coefficients.items() if v)}")
+            raise EngineError(
+                f"{where}: camera_model {model} has no distortion, but the frame gives "
+                f"{', '.join(k for k, v in coefficients.items() if v)}"
+            )
         return None
     if kind == "opencv" and coefficients.get("k4"):
-        raise EngineError(f"{where}: `k4` = {coefficients['k4']} belongs to the fisheye model (set is_fisheye or "
-                          "camera_model OPENCV_FISHEYE), or to OpenCV's rational model, which is not supported")
+        raise EngineError(
+            f"{where}: `k4` = {coefficients['k4']} belongs to the fisheye model (set is_fisheye or "
+            "camera_model OPENCV_FISHEYE), or to OpenCV's rational model, which is not supported"
+        )
     if kind == "fisheye" and (coefficients.get("p1") or coefficients.get("p2")):
         raise EngineError(f"{where}: a fisheye camera has no tangential terms p1/p2")
     lens = Distortion(kind, **coefficients)
@@ -154,8 +174,10 @@ def frame_name(rel: str, where: str) -> str:
         raise EngineError(f"{where}: `file_path` {rel!r} holds a NUL byte")
     name = os.path.splitext(os.path.basename(rel))[0]
     if name in ("", ".", ".."):
-        raise EngineError(f"{where}: `file_path` {rel!r} names no file (a frame needs a file name, "
-                          "not a folder: its render is written as <name>.png)")
+        raise EngineError(
+            f"{where}: `file_path` {rel!r} names no file (a frame needs a file name, "
+            "not a folder: its render is written as <name>.png)"
+        )
     return name
 
 
@@ -188,11 +210,14 @@ def load_image(path: Path) -> np.ndarray:
             if mode in _GREY16_MODES:
                 grey = np.asarray(im).astype(np.float32)
                 if mode == "I" and (grey.min() < 0 or grey.max() > 65535):
-                    raise EngineError(f"{path}: 32-bit integer image with values {grey.min():g}..{grey.max():g} "
-                                      "outside 0..65535: save it as an 8- or 16-bit PNG")
+                    raise EngineError(
+                        f"{path}: 32-bit integer image with values {grey.min():g}..{grey.max():g} "
+                        "outside 0..65535: save it as an 8- or 16-bit PNG"
+                    )
                 grey /= 65535.0
-                return np.concatenate([np.repeat(grey[..., None], 3, axis=-1),
-                                       np.ones(grey.shape + (1,), np.float32)], axis=-1)
+                return np.concatenate(
+                    [np.repeat(grey[..., None], 3, axis=-1), np.ones(grey.shape + (1,), np.float32)], axis=-1
+                )
             if mode in _RGBA_MODES or (mode in _RGB_MODES and "transparency" in im.info):
                 im = im.convert("RGBA")
             elif mode in _RGB_MODES:
@@ -262,8 +287,9 @@ def scaled_camera(cam: Camera, k: int) -> Camera:
     """The camera of its images box-filtered by k: intrinsics / k, size // k (the remainder cropped)."""
     if k == 1:
         return cam
-    return dataclasses.replace(cam, fx=cam.fx / k, fy=cam.fy / k, cx=cam.cx / k, cy=cam.cy / k,
-                               width=cam.width // k, height=cam.height // k)
+    return dataclasses.replace(
+        cam, fx=cam.fx / k, fy=cam.fy / k, cx=cam.cx / k, cy=cam.cy / k, width=cam.width // k, height=cam.height // k
+    )
 
 
 def check_c2w(m, where: str, key: str = "transform_matrix") -> np.ndarray:

@@ -60,8 +60,19 @@ def _corner_weight(fx, fy, fz, c: tl.constexpr):
 
 
 @triton.jit
-def _hash_forward(x_ptr, table_ptr, out_ptr, res_ptr, offset_ptr, n, table_mask,
-                  N_LEVELS: tl.constexpr, N_DENSE: tl.constexpr, F: tl.constexpr, BLOCK: tl.constexpr):
+def _hash_forward(
+    x_ptr,
+    table_ptr,
+    out_ptr,
+    res_ptr,
+    offset_ptr,
+    n,
+    table_mask,
+    N_LEVELS: tl.constexpr,
+    N_DENSE: tl.constexpr,
+    F: tl.constexpr,
+    BLOCK: tl.constexpr,
+):
     rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = rows < n
     feats = tl.arange(0, F)
@@ -82,8 +93,19 @@ def _hash_forward(x_ptr, table_ptr, out_ptr, res_ptr, offset_ptr, n, table_mask,
 
 
 @triton.jit
-def _hash_backward(x_ptr, grad_ptr, table_grad_ptr, res_ptr, offset_ptr, n, table_mask,
-                   N_LEVELS: tl.constexpr, N_DENSE: tl.constexpr, F: tl.constexpr, BLOCK: tl.constexpr):
+def _hash_backward(
+    x_ptr,
+    grad_ptr,
+    table_grad_ptr,
+    res_ptr,
+    offset_ptr,
+    n,
+    table_mask,
+    N_LEVELS: tl.constexpr,
+    N_DENSE: tl.constexpr,
+    F: tl.constexpr,
+    BLOCK: tl.constexpr,
+):
     rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = rows < n
     feats = tl.arange(0, F)
@@ -94,8 +116,9 @@ def _hash_backward(x_ptr, grad_ptr, table_grad_ptr, res_ptr, offset_ptr, n, tabl
         ix, fx = _cell(x_ptr, rows, valid, res, 0)
         iy, fy = _cell(x_ptr, rows, valid, res, 1)
         iz, fz = _cell(x_ptr, rows, valid, res, 2)
-        g = tl.load(grad_ptr + rows[:, None] * (N_LEVELS * F) + lvl * F + feats[None, :], mask=valid[:, None],
-                    other=0.0)
+        g = tl.load(
+            grad_ptr + rows[:, None] * (N_LEVELS * F) + lvl * F + feats[None, :], mask=valid[:, None], other=0.0
+        )
         for c in tl.static_range(8):
             row = _corner_row(ix, iy, iz, c, r_int, lvl < N_DENSE, table_mask, offset)
             w = _corner_weight(fx, fy, fz, c)
@@ -105,8 +128,9 @@ def _hash_backward(x_ptr, grad_ptr, table_grad_ptr, res_ptr, offset_ptr, n, tabl
 def _launch(kernel, name, n, *args, enc):
     grid = (triton.cdiv(n, BLOCK),)
     with kernel_launch(name):
-        kernel[grid](*args, n, enc.table_size - 1, N_LEVELS=enc.n_levels, N_DENSE=enc.n_dense, F=enc.n_features,
-                     BLOCK=BLOCK)
+        kernel[grid](
+            *args, n, enc.table_size - 1, N_LEVELS=enc.n_levels, N_DENSE=enc.n_dense, F=enc.n_features, BLOCK=BLOCK
+        )
 
 
 def encode(x: torch.Tensor, table: torch.Tensor, enc) -> torch.Tensor:
@@ -122,8 +146,17 @@ def table_gradient(x: torch.Tensor, grad: torch.Tensor, table: torch.Tensor, enc
     """The gradient of the table given the encoding's gradient `grad` (N, L*F) at points x."""
     table_grad = torch.zeros_like(table)
     if x.shape[0]:
-        _launch(_hash_backward, "hash_backward", x.shape[0], x, grad.contiguous(), table_grad, enc.res_f,
-                enc.offsets, enc=enc)
+        _launch(
+            _hash_backward,
+            "hash_backward",
+            x.shape[0],
+            x,
+            grad.contiguous(),
+            table_grad,
+            enc.res_f,
+            enc.offsets,
+            enc=enc,
+        )
     return table_grad
 
 

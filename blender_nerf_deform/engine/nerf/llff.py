@@ -64,8 +64,9 @@ def _factor(folder: Path) -> int:
 
 
 def _photos(folder: Path) -> list[Path]:
-    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES),
-                  key=lambda p: p.name)
+    return sorted(
+        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES), key=lambda p: p.name
+    )
 
 
 def _choose_folder(root: Path, downscale: int) -> tuple[Path, int]:
@@ -82,13 +83,17 @@ def _choose_folder(root: Path, downscale: int) -> tuple[Path, int]:
         return finest, 1
     finer = [m for m in by_factor if m < downscale and downscale % m == 0]
     if not finer:
-        raise EngineError(f"{root}: no images_{downscale}/ for --downscale {downscale}, nor a finer folder it divides "
-                          f"(there are: {', '.join(p.name for p in folders)})")
+        raise EngineError(
+            f"{root}: no images_{downscale}/ for --downscale {downscale}, nor a finer folder it divides "
+            f"(there are: {', '.join(p.name for p in folders)})"
+        )
     m = max(finer)
     return by_factor[m], downscale // m
 
 
-def _frustum_box(c2ws: np.ndarray, tan_x: np.ndarray, tan_y: np.ndarray, near: np.ndarray, far: np.ndarray) -> np.ndarray:
+def _frustum_box(
+    c2ws: np.ndarray, tan_x: np.ndarray, tan_y: np.ndarray, near: np.ndarray, far: np.ndarray
+) -> np.ndarray:
     """Bounding box of every camera's frustum between z-depths near and far (per camera)."""
     corners = []
     for sx in (-1, 1):
@@ -109,7 +114,9 @@ def read(path: Path, downscale: int, load_images: bool) -> FrameSource:
     except (OSError, ValueError) as exc:
         raise EngineError(f"{poses_file}: cannot read ({exc})") from None
     if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0 or not np.issubdtype(arr.dtype, np.number):
-        raise EngineError(f"{poses_file}: shape {arr.shape} {arr.dtype}, expected N x 17 numbers (3x5 pose + near, far)")
+        raise EngineError(
+            f"{poses_file}: shape {arr.shape} {arr.dtype}, expected N x 17 numbers (3x5 pose + near, far)"
+        )
     arr = arr.astype(np.float64)
     extra = 1
     if folder is None:
@@ -118,19 +125,24 @@ def read(path: Path, downscale: int, load_images: bool) -> FrameSource:
         extra = downscale
     photos = _photos(folder)
     if len(photos) != len(arr):
-        raise EngineError(f"{folder}: {len(photos)} images for the {len(arr)} rows of {poses_file} (LLFF pairs them "
-                          "in sorted name order, so none may be missing or extra)")
+        raise EngineError(
+            f"{folder}: {len(photos)} images for the {len(arr)} rows of {poses_file} (LLFF pairs them "
+            "in sorted name order, so none may be missing or extra)"
+        )
     for i, row in enumerate(arr):
         if not np.isfinite(row).all():
             raise EngineError(f"{poses_file}: row {i} ({photos[i].name}) has non-finite values")
         near, far = row[15], row[16]
         if not 0 < near < far:
-            raise EngineError(f"{poses_file}: row {i} ({photos[i].name}): bounds near={near:g} far={far:g} are not "
-                              "0 < near < far")
+            raise EngineError(
+                f"{poses_file}: row {i} ({photos[i].name}): bounds near={near:g} far={far:g} are not 0 < near < far"
+            )
         h_full, w_full, f_full = row[:15].reshape(3, 5)[:, 4]
         if not (h_full > 0 and w_full > 0 and f_full > 0):
-            raise EngineError(f"{poses_file}: row {i} ({photos[i].name}): height, width, focal {h_full:g}, {w_full:g}, "
-                              f"{f_full:g} must be positive")
+            raise EngineError(
+                f"{poses_file}: row {i} ({photos[i].name}): height, width, focal {h_full:g}, {w_full:g}, "
+                f"{f_full:g} must be positive"
+            )
     mats = arr[:, :15].reshape(-1, 3, 5)
     c2ws = np.tile(np.eye(4), (len(arr), 1, 1))
     c2ws[:, :3, 0], c2ws[:, :3, 1], c2ws[:, :3, 2] = mats[:, :, 1], -mats[:, :, 0], mats[:, :, 2]
@@ -138,8 +150,10 @@ def read(path: Path, downscale: int, load_images: bool) -> FrameSource:
     for i, m in enumerate(c2ws):
         r = m[:3, :3]
         if not np.allclose(r.T @ r, np.eye(3), atol=1e-3) or np.linalg.det(r) < 0:
-            raise EngineError(f"{poses_file}: row {i} ({photos[i].name}): the rotation is not a rotation "
-                              "(columns not orthonormal or mirrored)")
+            raise EngineError(
+                f"{poses_file}: row {i} ({photos[i].name}): the rotation is not a rotation "
+                "(columns not orthonormal or mirrored)"
+            )
     w, h = image_size(photos[0])
     if w < extra or h < extra:
         raise EngineError(f"{photos[0]}: image {w}x{h} is smaller than --downscale {extra}")
@@ -163,11 +177,29 @@ def read(path: Path, downscale: int, load_images: bool) -> FrameSource:
     move[:3, :3] *= s
     move[:3, 3] = -s * centre
     c2ws = apply_to_cameras(move, c2ws)
-    cameras = [Camera(c2ws[i], float(fx[i]), float(fy[i]), w / 2.0, h / 2.0, int(w), int(h),
-                      frame_name(p.name, f"{folder}: {p.name}"))
-               for i, p in enumerate(photos)]
+    cameras = [
+        Camera(
+            c2ws[i],
+            float(fx[i]),
+            float(fy[i]),
+            w / 2.0,
+            h / 2.0,
+            int(w),
+            int(h),
+            frame_name(p.name, f"{folder}: {p.name}"),
+        )
+        for i, p in enumerate(photos)
+    ]
     meta = {"images_folder": folder.name + "/", "similarity": (move @ up).tolist(), "bounds": arr[:, 15:].tolist()}
-    return FrameSource(cameras, photos, str(root), "llff", ((whole - centre) * s).astype(np.float32),
-                       ((inner - centre) * s).astype(np.float32), extra, meta=meta,
-                       size_keys="the first image says",
-                       n_listed=len(photos))
+    return FrameSource(
+        cameras,
+        photos,
+        str(root),
+        "llff",
+        ((whole - centre) * s).astype(np.float32),
+        ((inner - centre) * s).astype(np.float32),
+        extra,
+        meta=meta,
+        size_keys="the first image says",
+        n_listed=len(photos),
+    )

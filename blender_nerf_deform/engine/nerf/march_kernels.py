@@ -103,8 +103,11 @@ if backend.HAVE_NUMBA:
     @njit(inline="always", fastmath=FAST)
     def _radius(px, py, pz, center, inv_half):
         """|u|_inf of a world point in inner-box units, at least 1 (NaN → 1)."""
-        m = max(abs((px - center[0]) * inv_half[0]), abs((py - center[1]) * inv_half[1]),
-                abs((pz - center[2]) * inv_half[2]))
+        m = max(
+            abs((px - center[0]) * inv_half[0]),
+            abs((py - center[1]) * inv_half[1]),
+            abs((pz - center[2]) * inv_half[2]),
+        )
         if not (m > np.float32(1.0)):
             m = np.float32(1.0)
         return m
@@ -149,17 +152,47 @@ if backend.HAVE_NUMBA:
             return j + 1
         fx, fy, fz = np.float64(bx), np.float64(by), np.float64(bz)
         # Exit distance from the block along the ray (slab test, from the point), in float64.
-        t_exit = min(_slab_exit(px, dx, lo[0], scale[0], fx), _slab_exit(py, dy, lo[1], scale[1], fy),
-                     _slab_exit(pz, dz, lo[2], scale[2], fz))
+        t_exit = min(
+            _slab_exit(px, dx, lo[0], scale[0], fx),
+            _slab_exit(py, dy, lo[1], scale[1], fy),
+            _slab_exit(pz, dz, lo[2], scale[2], fz),
+        )
         if not (t_exit < 1e29) or t_exit <= 0:
             return j + 1
         jn = np.int64(np.floor((np.float64(ts_) + t_exit) / np.float64(step) - np.float64(ur))) - 1
         return jn if jn > j + 1 else j + 1
 
     @njit(parallel=True, cache=True, fastmath=FAST)
-    def _march_round(o, d, alive, phase, jn, j_end, tb, t_in, t_out, t_far, u, k,
-                     lo, scale, r, mask, step, has_bg, center, inv_half, bg_r, bg_mask, bg_step,
-                     ts, dts, counts, coarse, cr):
+    def _march_round(
+        o,
+        d,
+        alive,
+        phase,
+        jn,
+        j_end,
+        tb,
+        t_in,
+        t_out,
+        t_far,
+        u,
+        k,
+        lo,
+        scale,
+        r,
+        mask,
+        step,
+        has_bg,
+        center,
+        inv_half,
+        bg_r,
+        bg_mask,
+        bg_step,
+        ts,
+        dts,
+        counts,
+        coarse,
+        cr,
+    ):
         for a in prange(alive.shape[0]):
             ray = alive[a]
             n = 0
@@ -211,7 +244,6 @@ if backend.HAVE_NUMBA:
             tb[ray] = t
             counts[a] = n
 
-
     @njit(parallel=True, cache=True)
     def _gather_samples(o, d, alive, ts, dts, counts, starts, ray_out, t_out, dt_out, p_out, dir_out):
         # No fastmath: o + d * t rounds as torch's separate multiply and add do (same sample positions).
@@ -245,7 +277,13 @@ def gather_samples(o, d, alive, ts, dts, counts):
         t, dt = np.empty(n, np.float32), np.empty(n, np.float32)
         p, v = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         _gather_samples(_np(o), _np(d), _np(alive), ts.numpy(), dts.numpy(), counts_np, starts, ray, t, dt, p, v)
-        return torch.from_numpy(ray), torch.from_numpy(t), torch.from_numpy(dt), torch.from_numpy(p), torch.from_numpy(v)
+        return (
+            torch.from_numpy(ray),
+            torch.from_numpy(t),
+            torch.from_numpy(dt),
+            torch.from_numpy(p),
+            torch.from_numpy(v),
+        )
     dev = o.device
     k = ts.shape[1]
     valid = torch.arange(k, device=dev)[None, :] < counts.to(dev)[:, None]
@@ -261,13 +299,36 @@ def _march_round_cpu(o, d, alive, state: MarchState, k: int, g: Grids):
     dts = np.empty((n, k), np.float32)
     counts = np.empty(n, np.int64)
     ones = np.ones(3, np.float32)
-    _march_round(_np(o), _np(d), _np(alive), state.phase.numpy(), state.j.numpy(), _np(state.j_end), state.t.numpy(),
-                 _np(state.t_in), _np(state.t_out), _np(state.t_far), _np(state.u), int(k),
-                 _np(g.lo), _np(g.scale), g.res, g.mask.numpy().view(np.uint8), np.float32(g.step), g.has_bg,
-                 _np(g.center) if g.has_bg else ones, _np(g.inv_half) if g.has_bg else ones, g.bg_res,
-                 g.bg_mask.numpy().view(np.uint8) if g.has_bg else np.zeros(1, np.uint8), np.float32(g.bg_step),
-                 ts, dts, counts, g.coarse.numpy().view(np.uint8) if g.coarse is not None else np.zeros(1, np.uint8),
-                 g.coarse_res if g.coarse is not None else 0)
+    _march_round(
+        _np(o),
+        _np(d),
+        _np(alive),
+        state.phase.numpy(),
+        state.j.numpy(),
+        _np(state.j_end),
+        state.t.numpy(),
+        _np(state.t_in),
+        _np(state.t_out),
+        _np(state.t_far),
+        _np(state.u),
+        int(k),
+        _np(g.lo),
+        _np(g.scale),
+        g.res,
+        g.mask.numpy().view(np.uint8),
+        np.float32(g.step),
+        g.has_bg,
+        _np(g.center) if g.has_bg else ones,
+        _np(g.inv_half) if g.has_bg else ones,
+        g.bg_res,
+        g.bg_mask.numpy().view(np.uint8) if g.has_bg else np.zeros(1, np.uint8),
+        np.float32(g.bg_step),
+        ts,
+        dts,
+        counts,
+        g.coarse.numpy().view(np.uint8) if g.coarse is not None else np.zeros(1, np.uint8),
+        g.coarse_res if g.coarse is not None else 0,
+    )
     return torch.from_numpy(ts), torch.from_numpy(dts), torch.from_numpy(counts)
 
 
@@ -346,8 +407,9 @@ def _march_round_torch(o, d, alive, s: MarchState, k: int, g: Grids, block: int 
             over = ~(t < end)
             if bool(over.any()):
                 ro = ray[over]
-                s.phase[ro] = torch.where(before[over], torch.full_like(s.phase[ro], PHASE_INNER),
-                                          torch.full_like(s.phase[ro], PHASE_DONE))
+                s.phase[ro] = torch.where(
+                    before[over], torch.full_like(s.phase[ro], PHASE_INNER), torch.full_like(s.phase[ro], PHASE_DONE)
+                )
             go = ~over
             b, ray, t, end = b[go], ray[go], t[go], end[go]
             if b.numel():
@@ -365,8 +427,19 @@ def _march_round_torch(o, d, alive, s: MarchState, k: int, g: Grids, block: int 
     return ts, dts, counts
 
 
-def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box_steps: int,
-                       block: int = 128, bg_per_block: int = 8, settle: bool = False):
+def march_round_device(
+    o,
+    d,
+    alive,
+    active,
+    s: MarchState,
+    k: int,
+    g: Grids,
+    box_steps: int,
+    block: int = 128,
+    bg_per_block: int = 8,
+    settle: bool = False,
+):
     """`march_round` without a host-device sync (the device path): up to k next samples of each ray in `alive`
     whose `active` is True (the others emit none and stay where they are); (t (A, k), dt (A, k), counts (A,)).
 
@@ -382,8 +455,9 @@ def march_round_device(o, d, alive, active, s: MarchState, k: int, g: Grids, box
     if backend.use_triton(o.device):
         from . import march_triton
 
-        return march_triton.march_round(o, d, alive, active, s, k, g, max(1, -(-box_steps // block)), block,
-                                        bg_per_block)
+        return march_triton.march_round(
+            o, d, alive, active, s, k, g, max(1, -(-box_steps // block)), block, bg_per_block
+        )
     dev = o.device
     n = alive.shape[0]
     ts = torch.zeros((n, k + 1), dtype=torch.float32, device=dev)

@@ -35,8 +35,11 @@ def _inner_occupied(px, py, pz, lo_ptr, scale_ptr, mask_ptr, res):
     fy = tl.floor((py - tl.load(lo_ptr + 1)) * tl.load(scale_ptr + 1))
     fz = tl.floor((pz - tl.load(lo_ptr + 2)) * tl.load(scale_ptr + 2))
     inside = (fx >= 0) & (fx < res) & (fy >= 0) & (fy < res) & (fz >= 0) & (fz < res)
-    cell = (tl.where(inside, fx, 0.0).to(tl.int64) + res * tl.where(inside, fy, 0.0).to(tl.int64)
-            + res * res * tl.where(inside, fz, 0.0).to(tl.int64))
+    cell = (
+        tl.where(inside, fx, 0.0).to(tl.int64)
+        + res * tl.where(inside, fy, 0.0).to(tl.int64)
+        + res * res * tl.where(inside, fz, 0.0).to(tl.int64)
+    )
     return inside & (tl.load(mask_ptr + cell, mask=inside, other=0) != 0)
 
 
@@ -58,16 +61,50 @@ def _bg_occupied(px, py, pz, center_ptr, inv_half_ptr, bg_mask_ptr, bg_res, bg_q
     fy = tl.floor((uy * s + 2.0) * bg_quarter)
     fz = tl.floor((uz * s + 2.0) * bg_quarter)
     inside = (fx >= 0) & (fx < bg_res) & (fy >= 0) & (fy < bg_res) & (fz >= 0) & (fz < bg_res)
-    cell = (tl.where(inside, fx, 0.0).to(tl.int64) + bg_res * tl.where(inside, fy, 0.0).to(tl.int64)
-            + bg_res * bg_res * tl.where(inside, fz, 0.0).to(tl.int64))
+    cell = (
+        tl.where(inside, fx, 0.0).to(tl.int64)
+        + bg_res * tl.where(inside, fy, 0.0).to(tl.int64)
+        + bg_res * bg_res * tl.where(inside, fz, 0.0).to(tl.int64)
+    )
     return inside & (tl.load(bg_mask_ptr + cell, mask=inside, other=0) != 0)
 
 
 @triton.jit
-def _march(o_ptr, d_ptr, alive_ptr, active_ptr, phase_ptr, j_ptr, t_ptr, j_end_ptr, u_ptr, t_in_ptr, t_out_ptr,
-           t_far_ptr, ts_ptr, dts_ptr, counts_ptr, lo_ptr, scale_ptr, mask_ptr, center_ptr, inv_half_ptr,
-           bg_mask_ptr, n, k, n_blocks, block_steps, bg_per_block, res, step, bg_res, bg_quarter, bg_step,
-           HAS_BG: tl.constexpr, BLOCK: tl.constexpr):
+def _march(
+    o_ptr,
+    d_ptr,
+    alive_ptr,
+    active_ptr,
+    phase_ptr,
+    j_ptr,
+    t_ptr,
+    j_end_ptr,
+    u_ptr,
+    t_in_ptr,
+    t_out_ptr,
+    t_far_ptr,
+    ts_ptr,
+    dts_ptr,
+    counts_ptr,
+    lo_ptr,
+    scale_ptr,
+    mask_ptr,
+    center_ptr,
+    inv_half_ptr,
+    bg_mask_ptr,
+    n,
+    k,
+    n_blocks,
+    block_steps,
+    bg_per_block,
+    res,
+    step,
+    bg_res,
+    bg_quarter,
+    bg_step,
+    HAS_BG: tl.constexpr,
+    BLOCK: tl.constexpr,
+):
     lanes = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = lanes < n
     ray = tl.load(alive_ptr + lanes, mask=valid, other=0)
@@ -122,8 +159,16 @@ def _march(o_ptr, d_ptr, alive_ptr, active_ptr, phase_ptr, j_ptr, t_ptr, j_end_p
                 t_next = t_bg + dt
                 t_next = tl.where(t_next < end, t_next, end)
                 tsam = t_bg + u * (t_next - t_bg)
-                hit = go & _bg_occupied(ox + dx * tsam, oy + dy * tsam, oz + dz * tsam, center_ptr, inv_half_ptr,
-                                        bg_mask_ptr, bg_res, bg_quarter)
+                hit = go & _bg_occupied(
+                    ox + dx * tsam,
+                    oy + dy * tsam,
+                    oz + dz * tsam,
+                    center_ptr,
+                    inv_half_ptr,
+                    bg_mask_ptr,
+                    bg_res,
+                    bg_quarter,
+                )
                 tl.store(ts_ptr + lanes * k + count, tsam, mask=hit)
                 tl.store(dts_ptr + lanes * k + count, t_next - t_bg, mask=hit)
                 count += hit.to(tl.int64)
@@ -160,8 +205,28 @@ def _inverse(v):
 
 
 @triton.jit
-def _setup(o_ptr, d_ptr, u_ptr, box_ptr, center_ptr, inv_half_ptr, phase_ptr, j_ptr, j_end_ptr, t_ptr, t_in_ptr,
-           t_out_ptr, t_far_ptr, n, near, step, max_steps, far_radius, HAS_BG: tl.constexpr, BLOCK: tl.constexpr):
+def _setup(
+    o_ptr,
+    d_ptr,
+    u_ptr,
+    box_ptr,
+    center_ptr,
+    inv_half_ptr,
+    phase_ptr,
+    j_ptr,
+    j_end_ptr,
+    t_ptr,
+    t_in_ptr,
+    t_out_ptr,
+    t_far_ptr,
+    n,
+    near,
+    step,
+    max_steps,
+    far_radius,
+    HAS_BG: tl.constexpr,
+    BLOCK: tl.constexpr,
+):
     rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = rays < n
     ox = tl.load(o_ptr + rays * 3, mask=valid, other=0.0)
@@ -171,8 +236,20 @@ def _setup(o_ptr, d_ptr, u_ptr, box_ptr, center_ptr, inv_half_ptr, phase_ptr, j_
     iy = _inverse(tl.load(d_ptr + rays * 3 + 1, mask=valid, other=1.0))
     iz = _inverse(tl.load(d_ptr + rays * 3 + 2, mask=valid, other=1.0))
     u = tl.load(u_ptr + rays, mask=valid, other=0.5)
-    t_in, t_out = _ray_box(ox, oy, oz, ix, iy, iz, tl.load(box_ptr), tl.load(box_ptr + 1), tl.load(box_ptr + 2),
-                           tl.load(box_ptr + 3), tl.load(box_ptr + 4), tl.load(box_ptr + 5))
+    t_in, t_out = _ray_box(
+        ox,
+        oy,
+        oz,
+        ix,
+        iy,
+        iz,
+        tl.load(box_ptr),
+        tl.load(box_ptr + 1),
+        tl.load(box_ptr + 2),
+        tl.load(box_ptr + 3),
+        tl.load(box_ptr + 4),
+        tl.load(box_ptr + 5),
+    )
     t_in = tl.maximum(t_in, near)
     hit = t_out > t_in
     # Lattice indices of the first sample at or after the entry and one past the last before the exit.
@@ -219,10 +296,28 @@ def march_setup(o, d, u, box, g, near: float, max_steps: int, far_radius: float)
     if n:
         center, inv_half = (g.center, g.inv_half) if g.has_bg else (g.lo, g.scale)
         with kernel_launch("march_setup"):
-            _setup[(triton.cdiv(n, BLOCK),)](o.contiguous(), d.contiguous(), u, box.contiguous(), center, inv_half,
-                                             phase, j, j_end, t, t_in, t_out, t_far, n, float(near), float(g.step),
-                                             float(max_steps), float(far_radius), HAS_BG=bool(g.has_bg),
-                                             BLOCK=BLOCK)
+            _setup[(triton.cdiv(n, BLOCK),)](
+                o.contiguous(),
+                d.contiguous(),
+                u,
+                box.contiguous(),
+                center,
+                inv_half,
+                phase,
+                j,
+                j_end,
+                t,
+                t_in,
+                t_out,
+                t_far,
+                n,
+                float(near),
+                float(g.step),
+                float(max_steps),
+                float(far_radius),
+                HAS_BG=bool(g.has_bg),
+                BLOCK=BLOCK,
+            )
     return phase, j, j_end, t, t_in, t_out, t_far
 
 
@@ -245,8 +340,38 @@ def march_round(o, d, alive, active, s, k: int, g, n_blocks: int, block_steps: i
         center, inv_half, bg_mask, bg_res, bg_quarter, bg_step = g.lo, g.scale, mask, 1, 0.25, 1.0
     with kernel_launch("march"):
         _march[(triton.cdiv(n, BLOCK),)](
-            o.contiguous(), d.contiguous(), alive.contiguous(), active.contiguous().view(torch.uint8), s.phase,
-            s.j, s.t, s.j_end, s.u, s.t_in, s.t_out, s.t_far, ts, dts, counts, g.lo, g.scale, mask, center,
-            inv_half, bg_mask, n, k, n_blocks, block_steps, bg_per_block, g.res, float(g.step), bg_res, float(bg_quarter), float(bg_step),
-            HAS_BG=bool(g.has_bg), BLOCK=BLOCK)
+            o.contiguous(),
+            d.contiguous(),
+            alive.contiguous(),
+            active.contiguous().view(torch.uint8),
+            s.phase,
+            s.j,
+            s.t,
+            s.j_end,
+            s.u,
+            s.t_in,
+            s.t_out,
+            s.t_far,
+            ts,
+            dts,
+            counts,
+            g.lo,
+            g.scale,
+            mask,
+            center,
+            inv_half,
+            bg_mask,
+            n,
+            k,
+            n_blocks,
+            block_steps,
+            bg_per_block,
+            g.res,
+            float(g.step),
+            bg_res,
+            float(bg_quarter),
+            float(bg_step),
+            HAS_BG=bool(g.has_bg),
+            BLOCK=BLOCK,
+        )
     return ts, dts, counts

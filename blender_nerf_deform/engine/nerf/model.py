@@ -66,7 +66,7 @@ class NerfConfig:
     masks: str = "none"
 
     @classmethod
-    def from_dict(cls, d: dict) -> "NerfConfig":
+    def from_dict(cls, d: dict) -> NerfConfig:
         """The config of a plain dict (a checkpoint's), validated: EngineError naming the bad key."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names
@@ -84,8 +84,10 @@ class NerfConfig:
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise EngineError(f"config `{name}` = {v!r} is invalid: it must be an integer from {lo} to {hi}")
         if self.finest_resolution < self.base_resolution:
-            raise EngineError(f"config `finest_resolution` = {self.finest_resolution} is below `base_resolution` "
-                              f"= {self.base_resolution}")
+            raise EngineError(
+                f"config `finest_resolution` = {self.finest_resolution} is below `base_resolution` "
+                f"= {self.base_resolution}"
+            )
         for name, length in (("aabb", 6), ("background", 3)):
             v = getattr(self, name)
             if not isinstance(v, (list, tuple)) or len(v) != length or not all(_finite_number(x) for x in v):
@@ -95,11 +97,15 @@ class NerfConfig:
         if self.masks not in MASK_RECORDS:
             raise EngineError(f"config `masks` = {self.masks!r} is invalid: one of {', '.join(MASK_RECORDS)}")
         if self.contraction not in CONTRACTIONS:
-            raise EngineError(f"config `contraction` = {self.contraction!r} is invalid: one of {', '.join(CONTRACTIONS)}")
+            raise EngineError(
+                f"config `contraction` = {self.contraction!r} is invalid: one of {', '.join(CONTRACTIONS)}"
+            )
         if not _finite_number(self.near_plane) or self.near_plane < 0:
             raise EngineError(f"config `near_plane` = {self.near_plane!r} is invalid: it must be a finite number >= 0")
         if not _finite_number(self.occ_threshold) or self.occ_threshold < 0:
-            raise EngineError(f"config `occ_threshold` = {self.occ_threshold!r} is invalid: it must be a finite number >= 0")
+            raise EngineError(
+                f"config `occ_threshold` = {self.occ_threshold!r} is invalid: it must be a finite number >= 0"
+            )
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -113,10 +119,20 @@ class NerfConfig:
 # Inclusive bounds of the integer fields: generous, but a model outside them cannot be built (memory)
 # or evaluated (sh_encode has degrees 1..4; a render step needs steps_per_diagonal >= 1).
 _INT_RANGES = {
-    "n_levels": (1, 32), "n_features": (1, 64), "log2_table_size": (1, 28), "base_resolution": (1, 1 << 20),
-    "finest_resolution": (1, 1 << 20), "density_hidden": (1, 4096), "geo_feat_dim": (0, 4096),
-    "color_hidden": (1, 4096), "color_layers": (0, 64), "sh_degree": (1, 4), "occ_resolution": (1, 1024),
-    "steps_per_diagonal": (1, 1 << 20), "appearance_dim": (0, 64), "appearance_count": (0, 1 << 20),
+    "n_levels": (1, 32),
+    "n_features": (1, 64),
+    "log2_table_size": (1, 28),
+    "base_resolution": (1, 1 << 20),
+    "finest_resolution": (1, 1 << 20),
+    "density_hidden": (1, 4096),
+    "geo_feat_dim": (0, 4096),
+    "color_hidden": (1, 4096),
+    "color_layers": (0, 64),
+    "sh_degree": (1, 4),
+    "occ_resolution": (1, 1024),
+    "steps_per_diagonal": (1, 1 << 20),
+    "appearance_dim": (0, 64),
+    "appearance_count": (0, 1 << 20),
 }
 
 
@@ -176,11 +192,16 @@ class NerfModel(torch.nn.Module):
         super().__init__()
         self.config = config = config or NerfConfig()
         self.register_buffer("aabb", torch.tensor(config.aabb, dtype=torch.float32).reshape(2, 3))
-        self.encoding = HashEncoding(config.n_levels, config.n_features, config.log2_table_size,
-                                     config.base_resolution, config.finest_resolution)
+        self.encoding = HashEncoding(
+            config.n_levels, config.n_features, config.log2_table_size, config.base_resolution, config.finest_resolution
+        )
         self.density_net = _mlp(self.encoding.out_dim, config.density_hidden, 1, 1 + config.geo_feat_dim)
-        self.color_net = _mlp(1 + config.geo_feat_dim + config.sh_degree**2 + config.appearance_dim,
-                              config.color_hidden, config.color_layers, 3)
+        self.color_net = _mlp(
+            1 + config.geo_feat_dim + config.sh_degree**2 + config.appearance_dim,
+            config.color_hidden,
+            config.color_layers,
+            3,
+        )
         # nerfacto / NeRF-W's appearance embedding: one learnt code per training image, zero to start.
         self.appearance = None
         if config.appearance_dim:
@@ -210,8 +231,12 @@ class NerfModel(torch.nn.Module):
         """World points → the hash grid's [0, 1]^3 (through the contraction for unbounded NeRFs)."""
         if self.unbounded:
             center, half = 0.5 * (self.aabb[0] + self.aabb[1]), 0.5 * (self.aabb[1] - self.aabb[0])
-            if (points.device.type == "cpu" and points.dtype == torch.float32 and not points.requires_grad
-                    and backend.use_kernels(points.device)):
+            if (
+                points.device.type == "cpu"
+                and points.dtype == torch.float32
+                and not points.requires_grad
+                and backend.use_kernels(points.device)
+            ):
                 return composite_kernels.contract_normalize(points, center, half)
             return (contract(inner_units(points, center, half)) + 2.0) * 0.25
         return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])

@@ -32,7 +32,7 @@ class OccupancyGrid:
         self.allowed = None
 
     @classmethod
-    def from_mask(cls, aabb, mask: torch.Tensor) -> "OccupancyGrid":
+    def from_mask(cls, aabb, mask: torch.Tensor) -> OccupancyGrid:
         """A grid given by a boolean (R, R, R) mask indexed [z, y, x] (flat order has x fastest, as
         `cell_centers` reads it), e.g. for a deformed space."""
         mask = torch.as_tensor(mask, dtype=torch.bool)
@@ -44,7 +44,7 @@ class OccupancyGrid:
         grid.density = grid.mask.float()
         return grid
 
-    def to(self, device) -> "OccupancyGrid":
+    def to(self, device) -> OccupancyGrid:
         self.aabb = self.aabb.to(device)
         self.density = self.density.to(device)
         self.mask = self.mask.to(device)
@@ -80,8 +80,9 @@ class OccupancyGrid:
                 # The device path, without reading the mask back: the first and one past the last occupied
                 # index per axis.
                 index = torch.arange(r, device=self.mask.device)
-                per_axis = torch.stack([occ.any(dim=0).any(dim=0), occ.any(dim=0).any(dim=1),
-                                        occ.any(dim=2).any(dim=1)])
+                per_axis = torch.stack(
+                    [occ.any(dim=0).any(dim=0), occ.any(dim=0).any(dim=1), occ.any(dim=2).any(dim=1)]
+                )
                 lo = torch.where(per_axis, index, r).amin(dim=1).to(torch.float32)
                 hi = (torch.where(per_axis, index, -1).amax(dim=1) + 1).to(torch.float32)
                 box = torch.stack([self.aabb[0] + lo * self.cell_size, self.aabb[0] + hi * self.cell_size])
@@ -123,9 +124,17 @@ class OccupancyGrid:
         return self.aabb[0] + (xyz + off) * self.cell_size
 
     @torch.no_grad()
-    def update(self, density_fn, step_size: float, threshold: float = 0.01, decay: float = 0.95,
-               n_uniform: int | None = None, n_occupied: int | None = None, chunk: int = 1 << 16,
-               block: int = 1) -> None:
+    def update(
+        self,
+        density_fn,
+        step_size: float,
+        threshold: float = 0.01,
+        decay: float = 0.95,
+        n_uniform: int | None = None,
+        n_occupied: int | None = None,
+        chunk: int = 1 << 16,
+        block: int = 1,
+    ) -> None:
         """instant-ngp's update: re-sample some cells, EMA-max their density, re-threshold.
 
         `n_uniform` random cells plus `n_occupied` random currently-occupied cells
@@ -143,7 +152,7 @@ class OccupancyGrid:
             ib = torch.arange(rb**3, device=dev)
             xyz = torch.stack([ib % rb, (ib // rb) % rb, ib // (rb * rb)], dim=-1).float()
             pts = self._to_world(self.aabb[0] + (xyz + torch.rand_like(xyz)) * self.cell_size * block)
-            new = torch.cat([density_fn(pts[s: s + chunk]) for s in range(0, pts.shape[0], chunk)])
+            new = torch.cat([density_fn(pts[s : s + chunk]) for s in range(0, pts.shape[0], chunk)])
             full = new.reshape(rb, 1, rb, 1, rb, 1).expand(rb, block, rb, block, rb, block).reshape(-1)
             self.density = torch.maximum(self.density * decay, full)
             self._threshold(step_size, threshold)
@@ -165,12 +174,13 @@ class OccupancyGrid:
             idx = torch.cat(parts)
         new = torch.empty(idx.shape[0], device=dev)
         for s in range(0, idx.shape[0], chunk):
-            new[s: s + chunk] = density_fn(self.cell_centers(idx[s: s + chunk]))
+            new[s : s + chunk] = density_fn(self.cell_centers(idx[s : s + chunk]))
         # Random cells repeat: a plain `density[idx] = ...` keeps whichever duplicate is written last,
         # which varies from run to run (parallel writes). The max over duplicates is the same in any
         # order, so a seeded training run does not depend on the order of the writes.
-        self.density.scatter_reduce_(0, idx, torch.maximum(self.density[idx] * decay, new), reduce="amax",
-                                     include_self=False)
+        self.density.scatter_reduce_(
+            0, idx, torch.maximum(self.density[idx] * decay, new), reduce="amax", include_self=False
+        )
         self._threshold(step_size, threshold)
 
     def permitted(self, points: torch.Tensor) -> torch.Tensor:
@@ -238,7 +248,7 @@ class ContractedGrid(OccupancyGrid):
         shell = outside[2][:, None, None] | outside[1][None, :, None] | outside[0][None, None, :]
         return shell.reshape(-1)
 
-    def to(self, device) -> "ContractedGrid":
+    def to(self, device) -> ContractedGrid:
         super().to(device)
         self.inner = self.inner.to(device)
         self._shell = self._shell.to(device)

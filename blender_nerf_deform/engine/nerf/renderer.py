@@ -44,7 +44,7 @@ Depth is the expected distance along the (unit) ray direction, divided by alpha;
 from __future__ import annotations
 
 import contextlib
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -58,7 +58,6 @@ from .contraction import FAR_RADIUS
 from .lens import camera_directions
 from .occupancy import OccupancyGrid
 from .substeps import check_substeps
-
 
 SampleTransform = Callable[[torch.Tensor, torch.Tensor], tuple]
 
@@ -135,8 +134,13 @@ def render_path(name: str):
 
 def _grids(model, occupancy: OccupancyGrid, step: float, background: bool) -> march_kernels.Grids:
     box = occupancy.aabb.reshape(2, 3)
-    g = march_kernels.Grids(lo=box[0].contiguous(), scale=(occupancy.resolution / (box[1] - box[0])).contiguous(),
-                            res=occupancy.resolution, mask=occupancy.mask, step=float(step))
+    g = march_kernels.Grids(
+        lo=box[0].contiguous(),
+        scale=(occupancy.resolution / (box[1] - box[0])).contiguous(),
+        res=occupancy.resolution,
+        mask=occupancy.mask,
+        step=float(step),
+    )
     if _render_path == "fast" and occupancy.mask.device.type == "cpu":
         g.coarse, g.coarse_res = occupancy.coarse_blocks()
     bg = getattr(model, "background", None) if background else None
@@ -147,8 +151,14 @@ def _grids(model, occupancy: OccupancyGrid, step: float, background: bool) -> ma
     return g
 
 
-def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, grids: march_kernels.Grids,
-                near: float = 0.0, perturb: bool = False) -> march_kernels.MarchState:
+def march_setup(
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    occupancy: OccupancyGrid,
+    grids: march_kernels.Grids,
+    near: float = 0.0,
+    perturb: bool = False,
+) -> march_kernels.MarchState:
     """Where each ray starts: its segment ends and phase (`march_kernels.MarchState`).
 
     In the box the samples are t = (j + u) * step, j integer, u = 0.5 (or uniform random per ray
@@ -162,7 +172,8 @@ def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyG
         from . import march_triton
 
         phase, j0, j1, t, t_in, t_out, t_far = march_triton.march_setup(
-            origins, dirs, u, occupancy.bounds(), grids, near, march_kernels.MAX_STEPS_PER_RAY, FAR_RADIUS)
+            origins, dirs, u, occupancy.bounds(), grids, near, march_kernels.MAX_STEPS_PER_RAY, FAR_RADIUS
+        )
         return march_kernels.MarchState(phase=phase, j=j0, j_end=j1, t=t, t_in=t_in, t_out=t_out, t_far=t_far, u=u)
     # (The device path does not ask whether any cell is occupied, a read back: with none, the bounds are the
     # whole box and the march finds no sample.)
@@ -177,8 +188,12 @@ def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyG
     j0 = torch.ceil(t_in64 / step - u64)
     j1 = torch.ceil(t_out64 / step - u64)
     bad = ~hit | ~torch.isfinite(j0) | ~torch.isfinite(j1) | (j1 - j0 > march_kernels.MAX_STEPS_PER_RAY)
-    j0 = torch.where(bad, torch.zeros_like(j0), j0.clamp(-march_kernels.MAX_STEPS_PER_RAY, march_kernels.MAX_STEPS_PER_RAY))
-    j1 = torch.where(bad, torch.zeros_like(j1), j1.clamp(-march_kernels.MAX_STEPS_PER_RAY, march_kernels.MAX_STEPS_PER_RAY))
+    j0 = torch.where(
+        bad, torch.zeros_like(j0), j0.clamp(-march_kernels.MAX_STEPS_PER_RAY, march_kernels.MAX_STEPS_PER_RAY)
+    )
+    j1 = torch.where(
+        bad, torch.zeros_like(j1), j1.clamp(-march_kernels.MAX_STEPS_PER_RAY, march_kernels.MAX_STEPS_PER_RAY)
+    )
     j0, j1 = j0.long(), torch.maximum(j0, j1).long()
     if grids.has_bg:
         far_box = torch.stack([grids.center - FAR_RADIUS / grids.inv_half, grids.center + FAR_RADIUS / grids.inv_half])
@@ -194,9 +209,16 @@ def march_setup(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyG
     else:
         t_far = t_out
         phase = torch.where(hit, march_kernels.PHASE_INNER, march_kernels.PHASE_DONE).to(torch.int8)
-    return march_kernels.MarchState(phase=phase.contiguous(), j=j0.contiguous(), j_end=j1.contiguous(),
-                                    t=torch.full((n,), float(near), device=dev), t_in=t_in.contiguous(),
-                                    t_out=t_out.contiguous(), t_far=t_far.contiguous(), u=u.contiguous())
+    return march_kernels.MarchState(
+        phase=phase.contiguous(),
+        j=j0.contiguous(),
+        j_end=j1.contiguous(),
+        t=torch.full((n,), float(near), device=dev),
+        t_in=t_in.contiguous(),
+        t_out=t_out.contiguous(),
+        t_far=t_far.contiguous(),
+        u=u.contiguous(),
+    )
 
 
 def _round_samples(origins, dirs, alive, state, k, grids):
@@ -207,8 +229,15 @@ def _round_samples(origins, dirs, alive, state, k, grids):
     return alive[a], ts.to(origins.device)[a, slot], dts.to(origins.device)[a, slot]
 
 
-def march(origins: torch.Tensor, dirs: torch.Tensor, occupancy: OccupancyGrid, step: float,
-          near: float = 0.0, perturb: bool = False, model=None) -> tuple[torch.Tensor, torch.Tensor]:
+def march(
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    occupancy: OccupancyGrid,
+    step: float,
+    near: float = 0.0,
+    perturb: bool = False,
+    model=None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Every sample of the rays in occupied cells, without early termination: (ray index (S,), t (S,)),
     sorted by ray then t. With an unbounded `model`, its background samples too."""
     n, dev = origins.shape[0], origins.device
@@ -248,7 +277,7 @@ def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
     """Density and geometry features of all samples (no grad); with keep_encoding also the encodings."""
     sig, geo, encs, xs = [], [], [], []
     for s in range(0, pts.shape[0], chunk):
-        enc, inside, x = model.encode(pts[s: s + chunk])
+        enc, inside, x = model.encode(pts[s : s + chunk])
         a, b = model.features_from_encoding(enc, inside)
         sig.append(a)
         geo.append(b)
@@ -257,15 +286,35 @@ def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
             xs.append(x)
     if not sig:
         z = pts.new_zeros(0)
-        return z, pts.new_zeros(0, model.config.geo_feat_dim + 1), pts.new_zeros(0, model.encoding.out_dim), pts.new_zeros(0, 3)
+        return (
+            z,
+            pts.new_zeros(0, model.config.geo_feat_dim + 1),
+            pts.new_zeros(0, model.encoding.out_dim),
+            pts.new_zeros(0, 3),
+        )
+
     def cat(parts):  # no copy in the common single-chunk case
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
     return cat(sig), cat(geo), (cat(encs) if keep_encoding else None), (cat(xs) if keep_encoding else None)
 
 
-def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                  samples_out=None, appearance=None, samples_per_round=TRAIN_SAMPLES_PER_ROUND):
+def _render_chunk(
+    model,
+    o,
+    d,
+    occ,
+    step,
+    sample_transform,
+    perturb,
+    early_stop_eps,
+    weight_threshold,
+    grad,
+    near,
+    samples_out=None,
+    appearance=None,
+    samples_per_round=TRAIN_SAMPLES_PER_ROUND,
+):
     """Rays in rounds: march a few samples per live ray, evaluate them, retire the rays whose
     transmittance is spent, march on with the others."""
     n, dev = o.shape[0], o.device
@@ -317,8 +366,9 @@ def _render_chunk(model, o, d, occ, step, sample_transform, perturb, early_stop_
                 trans = _exclusive_transmittance(tau, ray_idx, n) * transmittance[ray_idx].to(tau.dtype)
             if grad:
                 sel = torch.nonzero((trans > early_stop_eps) & (sigma > 0)).flatten()
-                kept_parts.append((ray_idx[sel], t[sel], dt[sel], enc[sel], xn[sel], sdirs[sel],
-                                   None if keep is None else keep[sel]))
+                kept_parts.append(
+                    (ray_idx[sel], t[sel], dt[sel], enc[sel], xn[sel], sdirs[sel], None if keep is None else keep[sel])
+                )
             else:
                 w_all = trans * (1.0 - torch.exp(-tau))
                 sel = torch.nonzero(w_all > weight_threshold).flatten()
@@ -385,8 +435,8 @@ def _blocked_density(model, pts):
     sigma = pts.new_empty(n)
     geo = pts.new_empty(n, model.config.geo_feat_dim + 1)
     for s in range(0, n, FIELD_BLOCK):
-        enc, inside, _ = model.encode(pts[s: s + FIELD_BLOCK])
-        sigma[s: s + FIELD_BLOCK], geo[s: s + FIELD_BLOCK] = model.features_from_encoding(enc, inside)
+        enc, inside, _ = model.encode(pts[s : s + FIELD_BLOCK])
+        sigma[s : s + FIELD_BLOCK], geo[s : s + FIELD_BLOCK] = model.features_from_encoding(enc, inside)
     return sigma, geo
 
 
@@ -396,8 +446,9 @@ def _blocked_color(model, geo, dirs, codes=None):
         return model.color(geo, dirs, codes)
     rgb = geo.new_empty(n, 3)
     for s in range(0, n, FIELD_BLOCK):
-        rgb[s: s + FIELD_BLOCK] = model.color(geo[s: s + FIELD_BLOCK], dirs[s: s + FIELD_BLOCK],
-                                              None if codes is None else codes[s: s + FIELD_BLOCK])
+        rgb[s : s + FIELD_BLOCK] = model.color(
+            geo[s : s + FIELD_BLOCK], dirs[s : s + FIELD_BLOCK], None if codes is None else codes[s : s + FIELD_BLOCK]
+        )
     return rgb
 
 
@@ -407,8 +458,9 @@ def _split_transform(result):
     return pts, sdirs, keep, (extra[0] if extra else None)
 
 
-def _render_chunk_frame(model, o, d, occ, step, sample_transform, early_stop_eps, weight_threshold, near,
-                        appearance=None):
+def _render_chunk_frame(
+    model, o, d, occ, step, sample_transform, early_stop_eps, weight_threshold, near, appearance=None
+):
     """A chunk of a frame without gradients ("fast" path): rounds of FRAME_ROUND_K samples per live ray;
     only the samples the transform keeps reach the field and the compositing (a dropped sample has no
     density: it changes neither weight nor transmittance); fused CPU kernels where they apply."""
@@ -510,8 +562,22 @@ def _segment_exclusive(tau: torch.Tensor, row: torch.Tensor, first: torch.Tensor
     return torch.exp(-(excl - excl[first.clamp_max(max(tau.shape[0] - 1, 0))[row]])).to(tau.dtype)
 
 
-def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, early_stop_eps, weight_threshold, grad,
-                         near, samples_out=None, appearance=None, max_samples=None):
+def _render_chunk_device(
+    model,
+    o,
+    d,
+    occ,
+    step,
+    sample_transform,
+    perturb,
+    early_stop_eps,
+    weight_threshold,
+    grad,
+    near,
+    samples_out=None,
+    appearance=None,
+    max_samples=None,
+):
     """The device path (CUDA; the CPU without numba): what `_render_chunk` and `_render_chunk_frame` compute, with
     sizes known on the host, so that the host waits for the device once per round at most.
 
@@ -542,16 +608,16 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
         if grad:
             k = steps + (TRAIN_BG_STEPS if grids.has_bg else 0)
             bg_per_block = -(-TRAIN_BG_STEPS // max(1, -(-steps // 128)))
-            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps,
-                                                               bg_per_block=bg_per_block)
+            ts, dts, counts = march_kernels.march_round_device(
+                o, d, alive, active, state, k, grids, steps, bg_per_block=bg_per_block
+            )
             size = alive.numel() * k if max_samples is None else min(int(max_samples), alive.numel() * k)
             n_live = 0
         else:
             k = FRAME_ROUND_K[min(rounds, len(FRAME_ROUND_K) - 1)]
             k = max(FRAME_ROUND_K[0], min(k, FRAME_ROUND_BUDGET // alive.numel()))
             # (Frames on the torch formulation, without Triton: the march may wait for the device per block.)
-            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps,
-                                                               settle=True)
+            ts, dts, counts = march_kernels.march_round_device(o, d, alive, active, state, k, grids, steps, settle=True)
             marching = active & (state.phase[alive] < march_kernels.PHASE_DONE)
             size, n_live = (int(v) for v in read_back(counts.sum(), marching.sum()))  # the round's one sync
         rounds += 1
@@ -573,9 +639,9 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
                 from . import composite_triton
 
                 rgb = _blocked_color(model, geo, sdirs, codes)
-                n_color = n_color + composite_triton.composite_round(sigma, dt, t, rgb, first, counts, alive,
-                                                                     transmittance, color, alpha, depth,
-                                                                     weight_threshold)
+                n_color = n_color + composite_triton.composite_round(
+                    sigma, dt, t, rgb, first, counts, alive, transmittance, color, alpha, depth, weight_threshold
+                )
             else:
                 with torch.no_grad():
                     tau = sigma * dt
@@ -637,12 +703,25 @@ def _render_chunk_device(model, o, d, occ, step, sample_transform, perturb, earl
     return color, alpha, depth, n_density, seen.sum()
 
 
-def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=None, chunk: int = 4096,
-                occupancy: OccupancyGrid | None = None, sample_transform: SampleTransform | None = None,
-                step: float | None = None, perturb: bool = False, early_stop_eps: float | None = None,
-                weight_threshold: float | None = None, near: float | None = None, return_samples: bool = False,
-                appearance: torch.Tensor | None = None, progress: Callable[[int, int], None] | None = None,
-                max_samples: int | None = None) -> dict:
+def render_rays(
+    model,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    *,
+    background=None,
+    chunk: int = 4096,
+    occupancy: OccupancyGrid | None = None,
+    sample_transform: SampleTransform | None = None,
+    step: float | None = None,
+    perturb: bool = False,
+    early_stop_eps: float | None = None,
+    weight_threshold: float | None = None,
+    near: float | None = None,
+    return_samples: bool = False,
+    appearance: torch.Tensor | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    max_samples: int | None = None,
+) -> dict:
     """Render rays (origins (N,3), unit dirs (N,3), world frame) in chunks of `chunk` rays.
 
     Returns a dict: `color` (N,3) premultiplied (composited on black), `alpha` (N,),
@@ -675,20 +754,52 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     device_path = _render_path == "fast" and not backend.use_kernels(origins.device)
     for s in range(0, total, chunk):
         if device_path:
-            c, a, dp, nd, nc = _render_chunk_device(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
-                                                    sample_transform, perturb, early_stop_eps, weight_threshold,
-                                                    grad, near, samples,
-                                                    None if appearance is None else appearance[s: s + chunk],
-                                                    max_samples)
+            c, a, dp, nd, nc = _render_chunk_device(
+                model,
+                origins[s : s + chunk],
+                dirs[s : s + chunk],
+                occ,
+                step,
+                sample_transform,
+                perturb,
+                early_stop_eps,
+                weight_threshold,
+                grad,
+                near,
+                samples,
+                None if appearance is None else appearance[s : s + chunk],
+                max_samples,
+            )
         elif frame:
-            c, a, dp, nd, nc = _render_chunk_frame(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
-                                                   sample_transform, early_stop_eps, weight_threshold, near,
-                                                   None if appearance is None else appearance[s: s + chunk])
+            c, a, dp, nd, nc = _render_chunk_frame(
+                model,
+                origins[s : s + chunk],
+                dirs[s : s + chunk],
+                occ,
+                step,
+                sample_transform,
+                early_stop_eps,
+                weight_threshold,
+                near,
+                None if appearance is None else appearance[s : s + chunk],
+            )
         else:
-            c, a, dp, nd, nc = _render_chunk(model, origins[s: s + chunk], dirs[s: s + chunk], occ, step,
-                                             sample_transform, perturb, early_stop_eps, weight_threshold, grad, near,
-                                             samples, None if appearance is None else appearance[s: s + chunk],
-                                             TRAIN_SAMPLES_PER_ROUND if grad else RENDER_SAMPLES_PER_ROUND)
+            c, a, dp, nd, nc = _render_chunk(
+                model,
+                origins[s : s + chunk],
+                dirs[s : s + chunk],
+                occ,
+                step,
+                sample_transform,
+                perturb,
+                early_stop_eps,
+                weight_threshold,
+                grad,
+                near,
+                samples,
+                None if appearance is None else appearance[s : s + chunk],
+                TRAIN_SAMPLES_PER_ROUND if grad else RENDER_SAMPLES_PER_ROUND,
+            )
         if samples is not None and len(samples) > n_chunks_with_samples:
             n_chunks_with_samples = len(samples)
             samples[-1] = (samples[-1][0] + s,) + samples[-1][1:]  # ray indices of the whole batch
@@ -710,8 +821,14 @@ def render_rays(model, origins: torch.Tensor, dirs: torch.Tensor, *, background=
     bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
     rgb = color + (1.0 - alpha)[:, None] * bg
     depth = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
-    out = {"color": color, "alpha": alpha, "depth": depth, "rgb": rgb,
-           "n_density_samples": n_den, "n_color_samples": n_col}
+    out = {
+        "color": color,
+        "alpha": alpha,
+        "depth": depth,
+        "rgb": rgb,
+        "n_density_samples": n_den,
+        "n_color_samples": n_col,
+    }
     if samples is not None:
         # With gradients: the samples that were composited (ray index, t, dt, weight), sorted by ray then t.
         out["samples"] = tuple(torch.cat(p) for p in zip(*samples)) if samples else None
@@ -737,13 +854,15 @@ FRAME_BYTES_PER_PIXEL = 120
 def check_frame_memory(width: int, height: int) -> None:
     """EngineError, before anything is allocated, for a frame too large for this machine's memory (a frame's
     outputs live in host memory also on CUDA, which holds one chunk's work)."""
-    check_memory(float(width) * float(height) * FRAME_BYTES_PER_PIXEL, f"a {width}x{height} frame",
-                 "render it smaller (lower the resolution or its percentage)")
+    check_memory(
+        float(width) * float(height) * FRAME_BYTES_PER_PIXEL,
+        f"a {width}x{height} frame",
+        "render it smaller (lower the resolution or its percentage)",
+    )
 
 
 @torch.no_grad()
-def render_image(model, camera: Camera, background=None, chunk: int | None = None, substeps: int = 1,
-                 **kwargs) -> dict:
+def render_image(model, camera: Camera, background=None, chunk: int | None = None, substeps: int = 1, **kwargs) -> dict:
     """Render one frame. Returns numpy arrays: `rgba` (H,W,4) float straight alpha, `rgb` (H,W,3)
     composited on `background`, `depth` (H,W), and floats `density_samples_per_ray`,
     `color_samples_per_ray`. kwargs go to `render_rays` (occupancy, sample_transform, progress, ...).
@@ -773,15 +892,14 @@ def render_image(model, camera: Camera, background=None, chunk: int | None = Non
         rgb = torch.zeros(total, 3)
         n_den = n_col = 0
         for s in range(0, total, chunk):
-            pixels = order[s: s + chunk]
+            pixels = order[s : s + chunk]
             o, d = pixel_rays(camera, pixels, device=model.device)
             out = render_rays(model, o, d, background=background, chunk=pixels.numel(), **kwargs)
             if backend.use_kernels(model.device):
                 color[pixels], alpha[pixels] = out["color"].cpu(), out["alpha"].cpu()
                 depth[pixels], rgb[pixels] = out["depth"].cpu(), out["rgb"].cpu()
             else:  # one copy to the host per chunk (on CUDA each copy waits for the device)
-                packed = to_host(torch.cat([out["color"], out["alpha"][:, None], out["depth"][:, None], out["rgb"]],
-                                           1))
+                packed = to_host(torch.cat([out["color"], out["alpha"][:, None], out["depth"][:, None], out["rgb"]], 1))
                 color[pixels], alpha[pixels] = packed[:, :3], packed[:, 3]
                 depth[pixels], rgb[pixels] = packed[:, 4], packed[:, 5:]
             n_den += out["n_density_samples"]
@@ -792,6 +910,10 @@ def render_image(model, camera: Camera, background=None, chunk: int | None = Non
     straight = torch.where(alpha[:, None] > 1e-6, color / alpha.clamp_min(1e-6)[:, None], torch.zeros_like(color))
     rgba = torch.cat([straight.clamp(0, 1), alpha[:, None]], dim=-1).reshape(h, w, 4)
     n = max(1, h * w)
-    return {"rgba": rgba.cpu().numpy(), "rgb": rgb.clamp(0, 1).reshape(h, w, 3).cpu().numpy(),
-            "depth": depth.reshape(h, w).cpu().numpy(),
-            "density_samples_per_ray": n_den / n, "color_samples_per_ray": n_col / n}
+    return {
+        "rgba": rgba.cpu().numpy(),
+        "rgb": rgb.clamp(0, 1).reshape(h, w, 3).cpu().numpy(),
+        "depth": depth.reshape(h, w).cpu().numpy(),
+        "density_samples_per_ray": n_den / n,
+        "color_samples_per_ray": n_col / n,
+    }

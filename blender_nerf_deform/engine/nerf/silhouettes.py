@@ -24,8 +24,10 @@ import numpy as np
 from ..errors import EngineError
 
 MASK_MEANINGS = ("auto", "object", "ignore")
-MASK_LABELS = {"object": "object masks (the object alone, transparent around it)",
-               "ignore": "ignore masks (the masked-out pixels are skipped)"}
+MASK_LABELS = {
+    "object": "object masks (the object alone, transparent around it)",
+    "ignore": "ignore masks (the masked-out pixels are skipped)",
+}
 BORDER_KEPT_OBJECT = 0.5  # a mask that keeps less than this fraction of its photo's border is an object mask
 MASK_MARGIN = 0.01  # silhouettes widened by this fraction of the image's larger side
 OUTSIDE_TOLERANCE = 0.1  # a point survives outside this fraction of the masks that frame it (at least one)
@@ -47,10 +49,14 @@ def mask_meaning(masks: list, asked: str = "auto") -> tuple[str, str]:
         return asked, "as asked"
     kept = float(np.median([border_kept(m) for m in masks]))
     if kept < BORDER_KEPT_OBJECT:
-        return "object", (f"the masks keep a shape inside the photo ({kept:.0%} of the border, median): the object "
-                          "alone is real, outside the masks is empty space")
-    return "ignore", (f"the masks keep most of the photo ({kept:.0%} of the border, median): the pixels they remove "
-                      "are not trained, the rest of the photo is")
+        return "object", (
+            f"the masks keep a shape inside the photo ({kept:.0%} of the border, median): the object "
+            "alone is real, outside the masks is empty space"
+        )
+    return "ignore", (
+        f"the masks keep most of the photo ({kept:.0%} of the border, median): the pixels they remove "
+        "are not trained, the rest of the photo is"
+    )
 
 
 def _widened(mask: np.ndarray, pixels: int) -> np.ndarray:
@@ -71,7 +77,7 @@ def carve(points: np.ndarray, cameras: list, masks: list, chunk: int = 1 << 17) 
         wide = _widened(mask, int(round(MASK_MARGIN * max(h, w))))
         rot, origin = cam.c2w[:3, :3], cam.c2w[:3, 3]
         for s in range(0, len(points), chunk):
-            q = (points[s: s + chunk] - origin) @ rot  # camera space: looking down -Z, +Y up
+            q = (points[s : s + chunk] - origin) @ rot  # camera space: looking down -Z, +Y up
             z = -q[:, 2]
             front = z > 1e-9
             zs = np.where(front, z, 1.0)
@@ -94,8 +100,9 @@ def grid_points(box: np.ndarray, resolution: int) -> np.ndarray:
     return box[0] + np.stack([x, y, z], axis=-1).reshape(-1, 3) * (box[1] - box[0])
 
 
-def hull_box(cameras: list, masks: list, search: np.ndarray, resolution: int = 96,
-             margin: float = 0.1) -> np.ndarray | None:
+def hull_box(
+    cameras: list, masks: list, search: np.ndarray, resolution: int = 96, margin: float = 0.1
+) -> np.ndarray | None:
     """The box (2, 3) of the visual hull within the box `search`, grown by `margin` of its size on every side
     (and one search cell), or None when the masks carve everything away."""
     from scipy.ndimage import label

@@ -20,6 +20,8 @@ MAX_SUBSTEPS = 16
 def check_substeps(value) -> int:
     """`value` as a number of substeps, or EngineError naming what is wrong."""
     if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_SUBSTEPS:
-        raise EngineError(f"substeps = {value!r} is invalid: it must be an integer from 1 to {MAX_SUBSTEPS} "
-                          "(samples per step of the NeRF's march)")
+        raise EngineError(
+            f"substeps = {value!r} is invalid: it must be an integer from 1 to {MAX_SUBSTEPS} "
+            "(samples per step of the NeRF's march)"
+        )
     return value

@@ -28,26 +28,25 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
 from .. import backend
-from . import adam_kernels
 from ..errors import EngineError
-from ..launch_count import read_back
 from ..files import atomic_write, check_writable, folder_lock, interrupts_deferred, remove_stale_temporaries
+from ..launch_count import read_back
+from . import adam_kernels
 from .checkpoint import load_nerf, read_checkpoint, save_nerf
 from .dataset import NerfDataset, load_dataset
-from .model import NerfConfig, NerfModel, resolve_device
 from .lens import camera_directions
+from .model import NerfConfig, NerfModel, resolve_device
 from .renderer import render_image, render_rays
 from .silhouettes import MASK_LABELS, carve
 from .visibility import model_depth, paid_for, photos_seeing_through
-
 
 OCC_UPDATE_EVERY_PER_GRID = 16
 VISIBILITY_MARKS = (0.3, 0.6)  # fractions of the budget at which free space is judged by the photos seeing through
@@ -95,8 +94,9 @@ class TrainOptions:
     min_views: int = 0
 
 
-def distortion_loss(ray_idx: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, w: torch.Tensor, n_rays: int,
-                    scale: float) -> torch.Tensor:
+def distortion_loss(
+    ray_idx: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, w: torch.Tensor, n_rays: int, scale: float
+) -> torch.Tensor:
     """mip-NeRF 360's distortion loss, mean over rays: sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 ds_i.
 
     It pulls each ray's weights together (a surface, not a fog), which is what lets rays of a
@@ -142,22 +142,30 @@ class Trainer:
         self.c2w = torch.tensor(np.stack([c.c2w[:3, :4] for c in dataset.cameras]), dtype=torch.float32, device=dev)
         self.intr = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in dataset.cameras], dtype=torch.float32, device=dev)
         # Distorted cameras: each distinct lens, and which one each image has (-1: pinhole).
-        self.lenses = sorted({c.distortion for c in dataset.cameras if c.distortion is not None and not c.distortion.is_identity},
-                             key=repr)
-        self.lens_of_image = torch.tensor([self.lenses.index(c.distortion) if c.distortion in self.lenses else -1
-                                           for c in dataset.cameras], dtype=torch.int64, device=dev)
+        self.lenses = sorted(
+            {c.distortion for c in dataset.cameras if c.distortion is not None and not c.distortion.is_identity},
+            key=repr,
+        )
+        self.lens_of_image = torch.tensor(
+            [self.lenses.index(c.distortion) if c.distortion in self.lenses else -1 for c in dataset.cameras],
+            dtype=torch.int64,
+            device=dev,
+        )
         enc = model.encoding
         self.lazy_table = backend.use_kernels(dev)  # the table's lazy Adam needs the fused encoding kernels
         enc.fused_grad = self.lazy_table
         mlp_params = list(model.density_net.parameters()) + list(model.color_net.parameters())
         if model.appearance is not None:
             if model.config.appearance_count < n:
-                raise EngineError(f"the NeRF has appearance codes for {model.config.appearance_count} images, the "
-                                  f"dataset has {n}")
+                raise EngineError(
+                    f"the NeRF has appearance codes for {model.config.appearance_count} images, the dataset has {n}"
+                )
             mlp_params += list(model.appearance.parameters())
         params = mlp_params if self.lazy_table else [enc.table] + mlp_params
         # The device path: all parameters in one fused kernel.
-        self.optimizer = torch.optim.Adam(params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15, fused=not self.lazy_table)
+        self.optimizer = torch.optim.Adam(
+            params, lr=self.opt.lr, betas=(0.9, 0.99), eps=1e-15, fused=not self.lazy_table
+        )
         # Per photo: a rotation vector (radians, world axes, about the camera's centre) and a translation
         # in units of pose_scale; zero is the photo's own pose.
         self.pose_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
@@ -183,7 +191,9 @@ class Trainer:
             # Object masks: nothing outside the silhouettes' hull is ever occupied.
             grid = model.occupancy
             cells = grid.cell_centers(torch.arange(grid.resolution**3, device=dev), jitter=False).cpu().numpy()
-            grid.restrict(torch.from_numpy(carve(cells, dataset.cameras, [img[..., 3] > 0.5 for img in dataset.images])))
+            grid.restrict(
+                torch.from_numpy(carve(cells, dataset.cameras, [img[..., 3] > 0.5 for img in dataset.images]))
+            )
         dw = self.opt.distortion_weight
         self.distortion = float(dw if dw is not None else (0.01 if model.background is not None else 0.0))
         self.distortion_scale = float((model.aabb[1] - model.aabb[0]).max()) / 2
@@ -274,12 +284,15 @@ class Trainer:
         """Each photo's learned correction: rotations (N, 3, 3) applied to its rays' directions and world
         translations (N, 3) added to their origins (identity and zero without pose refinement)."""
         if self.pose_delta is None:
-            return (torch.eye(3, device=self.device).expand(self.n_images, 3, 3),
-                    torch.zeros(self.n_images, 3, device=self.device))
+            return (
+                torch.eye(3, device=self.device).expand(self.n_images, 3, 3),
+                torch.zeros(self.n_images, 3, device=self.device),
+            )
         w = self.pose_delta[:, :3]
         zero = torch.zeros_like(w[:, 0])
-        skew = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero],
-                           dim=-1).reshape(-1, 3, 3)
+        skew = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], dim=-1).reshape(
+            -1, 3, 3
+        )
         return torch.linalg.matrix_exp(skew), self.pose_delta[:, 3:] * self.pose_scale
 
     def progress_fraction(self) -> float:
@@ -324,8 +337,19 @@ class Trainer:
         if self.lazy_table:
             enc = self.model.encoding
             t = self.step_count + 1
-            adam_kernels.sparse_adam(enc.table.detach().numpy(), enc.grad_buffer().numpy(), self.table_m.numpy(),
-                         self.table_v.numpy(), enc.touched_rows(), lr, 0.9, 0.99, 1e-15, 1 - 0.9**t, 1 - 0.99**t)
+            adam_kernels.sparse_adam(
+                enc.table.detach().numpy(),
+                enc.grad_buffer().numpy(),
+                self.table_m.numpy(),
+                self.table_v.numpy(),
+                enc.touched_rows(),
+                lr,
+                0.9,
+                0.99,
+                1e-15,
+                1 - 0.9**t,
+                1 - 0.99**t,
+            )
 
     # The device path: slots for the samples of a step's batch (None: every sample the march can give), sized
     # from the last step's samples per ray with room to spare; a full step (samples were cut) doubles them.
@@ -358,8 +382,17 @@ class Trainer:
             bg = torch.as_tensor(m.config.background, dtype=torch.float32, device=self.device).expand(self.n_rays, 3)
         tgt = target[:, :3] * target[:, 3:4] + bg * (1.0 - target[:, 3:4])
         codes = m.appearance(images) if m.appearance is not None else None
-        out = render_rays(m, o, d, background=bg, chunk=self.n_rays, perturb=True, return_samples=self.distortion > 0,
-                          appearance=codes, max_samples=self.sample_cap)
+        out = render_rays(
+            m,
+            o,
+            d,
+            background=bg,
+            chunk=self.n_rays,
+            perturb=True,
+            return_samples=self.distortion > 0,
+            appearance=codes,
+            max_samples=self.sample_cap,
+        )
         squared = (out["rgb"] - tgt) ** 2
         loss = mse = torch.mean(squared)
         if self.distortion > 0 and out.get("samples") is not None:
@@ -390,8 +423,13 @@ class Trainer:
             self.sample_cap = self._next_sample_cap(n_density, rays)
         self.step_count += 1
         self.elapsed += time.perf_counter() - t_start
-        self.last = {"loss": lv, "psnr": -10 * math.log10(max(lv, 1e-10)), "rays": o.shape[0],
-                     "samples_per_ray": per_ray, "density_samples_per_ray": den_per_ray}
+        self.last = {
+            "loss": lv,
+            "psnr": -10 * math.log10(max(lv, 1e-10)),
+            "rays": o.shape[0],
+            "samples_per_ray": per_ray,
+            "density_samples_per_ray": den_per_ray,
+        }
         return self.last
 
     def done(self) -> bool:
@@ -416,8 +454,12 @@ class Trainer:
 
     # --- resume ------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        s = {"step": self.step_count, "elapsed": self.elapsed, "n_rays": self.n_rays,
-             "optimizer": self.optimizer.state_dict()}
+        s = {
+            "step": self.step_count,
+            "elapsed": self.elapsed,
+            "n_rays": self.n_rays,
+            "optimizer": self.optimizer.state_dict(),
+        }
         if self.lazy_table:
             s["table_m"], s["table_v"] = self.table_m.clone(), self.table_v.clone()
         if self.pose_delta is not None:
@@ -430,8 +472,9 @@ class Trainer:
         except (KeyError, TypeError, ValueError) as exc:
             raise EngineError(f"{where}: the trainer state to resume is unreadable ({exc!r})") from None
         if step < 0 or n_rays < 1 or not math.isfinite(elapsed):
-            raise EngineError(f"{where}: the trainer state to resume is invalid (step {step}, rays {n_rays}, "
-                              f"elapsed {elapsed})")
+            raise EngineError(
+                f"{where}: the trainer state to resume is invalid (step {step}, rays {n_rays}, elapsed {elapsed})"
+            )
         self.step_count, self.elapsed, self.n_rays = step, elapsed, min(n_rays, self.opt.max_rays)
         try:
             self.optimizer.load_state_dict(s["optimizer"])
@@ -440,14 +483,21 @@ class Trainer:
         deltas = s.get("pose_delta")
         if self.pose_delta is not None and isinstance(deltas, torch.Tensor):
             if deltas.shape != self.pose_delta.shape or not bool(torch.isfinite(deltas).all()):
-                raise EngineError(f"{where}: the pose corrections to resume have shape {tuple(deltas.shape)} or are "
-                                  f"not finite; this dataset's {self.n_images} photos need ({self.n_images}, 6)")
+                raise EngineError(
+                    f"{where}: the pose corrections to resume have shape {tuple(deltas.shape)} or are "
+                    f"not finite; this dataset's {self.n_images} photos need ({self.n_images}, 6)"
+                )
             with torch.no_grad():
                 self.pose_delta.copy_(deltas)
         if self.lazy_table and "table_m" in s:
             m, v = s["table_m"], s.get("table_v")
-            if (isinstance(m, torch.Tensor) and isinstance(v, torch.Tensor) and m.shape == v.shape == self.table_m.shape
-                    and bool(torch.isfinite(m).all()) and bool(torch.isfinite(v).all())):
+            if (
+                isinstance(m, torch.Tensor)
+                and isinstance(v, torch.Tensor)
+                and m.shape == v.shape == self.table_m.shape
+                and bool(torch.isfinite(m).all())
+                and bool(torch.isfinite(v).all())
+            ):
                 self.table_m.copy_(m)
                 self.table_v.copy_(v)
 
@@ -455,13 +505,19 @@ class Trainer:
         """Write the checkpoint, unless training diverged: NaN weights would replace the last good one."""
         for name, value in self.model.state_dict().items():
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-                raise EngineError(f"training diverged at step {self.step_count}: `{name}` holds NaN or inf; "
-                                  f"{path} keeps the last good checkpoint (lower the learning rate or check the data)")
+                raise EngineError(
+                    f"training diverged at step {self.step_count}: `{name}` holds NaN or inf; "
+                    f"{path} keeps the last good checkpoint (lower the learning rate or check the data)"
+                )
         save_nerf(self.model, path, trainer_state=self.state_dict())
 
     # --- the loop ----------------------------------------------------------------------------
-    def train(self, progress: bool = True, callback: Callable[["Trainer"], None] | None = None,
-              should_stop: Callable[[], bool] | None = None) -> dict:
+    def train(
+        self,
+        progress: bool = True,
+        callback: Callable[[Trainer], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> dict:
         """Train until the budget is spent. `callback(trainer)` runs after every step (its time is not
         counted); `should_stop()` returning True cancels (a checkpoint is still written)."""
         if self.opt.steps is None and self.opt.max_seconds is None:
@@ -473,8 +529,12 @@ class Trainer:
             if self.opt.steps is not None:
                 bar = tqdm(total=self.opt.steps, initial=self.step_count, unit="step", dynamic_ncols=True)
             else:
-                bar = tqdm(total=round(self.opt.max_seconds), unit="s", dynamic_ncols=True,
-                           bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt}s [{elapsed}<{remaining}{postfix}]")
+                bar = tqdm(
+                    total=round(self.opt.max_seconds),
+                    unit="s",
+                    dynamic_ncols=True,
+                    bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt}s [{elapsed}<{remaining}{postfix}]",
+                )
         last_ckpt = time.perf_counter()
         try:
             while not self.done():
@@ -486,8 +546,13 @@ class Trainer:
                         bar.n = min(self.elapsed, self.opt.max_seconds)
                         bar.refresh()
                     if self.step_count % 10 == 0:
-                        bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}",
-                                        rays=info["rays"], spr=f"{info['samples_per_ray']:.1f}", refresh=False)
+                        bar.set_postfix(
+                            loss=f"{info['loss']:.4f}",
+                            psnr=f"{info['psnr']:.2f}",
+                            rays=info["rays"],
+                            spr=f"{info['samples_per_ray']:.1f}",
+                            refresh=False,
+                        )
                 if callback is not None:
                     callback(self)
                 if self.opt.checkpoint_path and time.perf_counter() - last_ckpt > self.opt.checkpoint_every_s:
@@ -532,9 +597,15 @@ def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     half = float((inner[1] - inner[0]).max() / 2)
     # Half the bounded model's samples per diagonal: on fox (2 min) the same PSNR as 512 (25.3 dB) with
     # 13 % fewer samples per ray (BENCHMARKS.md, issue 13).
-    return NerfConfig(aabb=[float(v) for v in inner.reshape(-1)], contraction="linf", steps_per_diagonal=256,
-                      finest_resolution=2 * base.finest_resolution, near_plane=0.05 * half,
-                      occ_threshold=UNBOUNDED_OCC_THRESHOLD, masks=masks)
+    return NerfConfig(
+        aabb=[float(v) for v in inner.reshape(-1)],
+        contraction="linf",
+        steps_per_diagonal=256,
+        finest_resolution=2 * base.finest_resolution,
+        near_plane=0.05 * half,
+        occ_threshold=UNBOUNDED_OCC_THRESHOLD,
+        masks=masks,
+    )
 
 
 SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.manual_seed accepts
@@ -552,10 +623,25 @@ def check_budget(steps=None, max_seconds=None, seed: int = 0, checkpoint_every: 
         raise EngineError(f"--seed must be an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]} (64 bits), got {seed!r}")
 
 
-def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", downscale=1, resume=False,
-                 checkpoint_every=120.0, progress=True, config_overrides: dict | None = None, should_stop=None,
-                 seed: int = 0, overwrite: bool = False, scene_model: str = "auto", drop_blurry: float = 0.0,
-                 callback=None, masks: str = "auto") -> dict:
+def run_training(
+    data,
+    out_dir,
+    max_seconds=None,
+    steps=None,
+    device="auto",
+    downscale=1,
+    resume=False,
+    checkpoint_every=120.0,
+    progress=True,
+    config_overrides: dict | None = None,
+    should_stop=None,
+    seed: int = 0,
+    overwrite: bool = False,
+    scene_model: str = "auto",
+    drop_blurry: float = 0.0,
+    callback=None,
+    masks: str = "auto",
+) -> dict:
     """Train and write out_dir/nerf.ckpt; returns a summary dict (also written to out_dir/train.json).
     `callback(trainer)` runs after every step (the worker reports progress from it).
 
@@ -587,8 +673,23 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
     out.mkdir(parents=True, exist_ok=True)
     try:
         with folder_lock(out, LOCK_NAME, holder="another train process"):
-            return _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every,
-                                 progress, config_overrides, should_stop, seed, scene_model, callback)
+            return _train_locked(
+                ds,
+                out,
+                ckpt,
+                dev,
+                max_seconds,
+                steps,
+                resume,
+                overwrite,
+                checkpoint_every,
+                progress,
+                config_overrides,
+                should_stop,
+                seed,
+                scene_model,
+                callback,
+            )
     except EngineError:
         if created:
             try:
@@ -600,12 +701,28 @@ def run_training(data, out_dir, max_seconds=None, steps=None, device="auto", dow
 
 def _check_replace(ckpt: Path, resume: bool, overwrite: bool) -> None:
     if ckpt.exists() and not resume and not overwrite:
-        raise EngineError(f"{ckpt} already holds a trained NeRF: pass --resume to continue it or --overwrite "
-                          "to replace it")
+        raise EngineError(
+            f"{ckpt} already holds a trained NeRF: pass --resume to continue it or --overwrite to replace it"
+        )
 
 
-def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, checkpoint_every, progress,
-                  config_overrides, should_stop, seed, scene_model="auto", callback=None) -> dict:
+def _train_locked(
+    ds,
+    out,
+    ckpt,
+    dev,
+    max_seconds,
+    steps,
+    resume,
+    overwrite,
+    checkpoint_every,
+    progress,
+    config_overrides,
+    should_stop,
+    seed,
+    scene_model="auto",
+    callback=None,
+) -> dict:
     _check_replace(ckpt, resume, overwrite)  # again: another process may have finished here meanwhile
     # A process killed while writing left its temporary files; with the lock held none is in use.
     for name in (ckpt, out / "train.json"):
@@ -620,17 +737,27 @@ def _train_locked(ds, out, ckpt, dev, max_seconds, steps, resume, overwrite, che
             setattr(cfg, k, v)
         torch.manual_seed(seed)
         model = NerfModel(cfg).to(dev)
-    opts = TrainOptions(max_seconds=max_seconds, steps=steps, checkpoint_path=str(ckpt), checkpoint_every_s=checkpoint_every,
-                        seed=seed)
+    opts = TrainOptions(
+        max_seconds=max_seconds, steps=steps, checkpoint_path=str(ckpt), checkpoint_every_s=checkpoint_every, seed=seed
+    )
     trainer = Trainer(model, ds, opts)
     if state:
         trainer.load_state_dict(state, where=str(ckpt))
         trainer.elapsed = 0.0  # --max-seconds counts this run
     t0 = time.perf_counter()
     summary = trainer.train(progress=progress, should_stop=should_stop, callback=callback)
-    summary.update({"checkpoint": str(ckpt), "device": str(dev), "wall_seconds": time.perf_counter() - t0,
-                    "images": len(ds), "width": ds.width, "height": ds.height, "masks": ds.mask_meaning,
-                    "masks_reason": ds.mask_reason})
+    summary.update(
+        {
+            "checkpoint": str(ckpt),
+            "device": str(dev),
+            "wall_seconds": time.perf_counter() - t0,
+            "images": len(ds),
+            "width": ds.width,
+            "height": ds.height,
+            "masks": ds.mask_meaning,
+            "masks_reason": ds.mask_reason,
+        }
+    )
     text = json.dumps(summary, indent=1).encode()
     atomic_write(out / "train.json", lambda f: f.write(text))
     return summary

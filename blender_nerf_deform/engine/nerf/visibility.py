@@ -17,7 +17,7 @@ hollow solid objects and give extraction a double surface.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -31,9 +31,16 @@ DEPTH_DOWNSCALE = 4  # the photos' depth is rendered at this fraction of their s
 
 def small_camera(camera: Camera, downscale: int) -> Camera:
     """The pinhole of `camera` at 1/downscale of its size (the lens's distortion is within a pixel's margin there)."""
-    return dataclasses.replace(camera, fx=camera.fx / downscale, fy=camera.fy / downscale, cx=camera.cx / downscale,
-                               cy=camera.cy / downscale, width=max(1, camera.width // downscale),
-                               height=max(1, camera.height // downscale), distortion=None)
+    return dataclasses.replace(
+        camera,
+        fx=camera.fx / downscale,
+        fy=camera.fy / downscale,
+        cx=camera.cx / downscale,
+        cy=camera.cy / downscale,
+        width=max(1, camera.width // downscale),
+        height=max(1, camera.height // downscale),
+        distortion=None,
+    )
 
 
 def model_depth(model, camera: Camera) -> torch.Tensor:
@@ -45,13 +52,19 @@ def model_depth(model, camera: Camera) -> torch.Tensor:
     finally:
         model.train(was)
     depth = torch.from_numpy(out["depth"]).to(model.device)
-    return torch.where(torch.from_numpy(out["rgba"][..., 3]).to(model.device) > 0.5, depth,
-                       torch.full_like(depth, float("inf")))
+    return torch.where(
+        torch.from_numpy(out["rgba"][..., 3]).to(model.device) > 0.5, depth, torch.full_like(depth, float("inf"))
+    )
 
 
 @torch.no_grad()
-def photos_seeing_through(grid: OccupancyGrid, cameras: list, depth_of: Callable[[Camera], torch.Tensor],
-                          downscale: int = DEPTH_DOWNSCALE, chunk: int = 1 << 20) -> torch.Tensor:
+def photos_seeing_through(
+    grid: OccupancyGrid,
+    cameras: list,
+    depth_of: Callable[[Camera], torch.Tensor],
+    downscale: int = DEPTH_DOWNSCALE,
+    chunk: int = 1 << 20,
+) -> torch.Tensor:
     """(cells,) int32: for each cell of `grid`, how many of `cameras` see through it (module docstring), given
     `depth_of(camera)`, the (H, W) depth a camera sees (`model_depth` of the NeRF being trained)."""
     dev = grid.mask.device
@@ -73,7 +86,7 @@ def photos_seeing_through(grid: OccupancyGrid, cameras: list, depth_of: Callable
             framed = (z > 0) & (i >= 0) & (i < small.width) & (j >= 0) & (j < small.height)
             pixel = (j.clamp(0, small.height - 1) * small.width + i.clamp(0, small.width - 1)).long()
             distance = (centres - origin).norm(dim=-1)
-            counts[s: s + chunk] += (framed & (distance <= depth[pixel] + margin)).int()
+            counts[s : s + chunk] += (framed & (distance <= depth[pixel] + margin)).int()
     return counts
 
 

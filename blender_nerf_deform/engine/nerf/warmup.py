@@ -30,12 +30,20 @@ def tiny_scene(has_alpha: bool, seed: int = 0) -> NerfDataset:
     """Two random 16x16 photos of the box [-1, 1]^3: RGBA (an object) or opaque (a room around it)."""
     rng = np.random.default_rng(seed)
     box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=np.float32)
-    cams = [Camera.looking_at_box(box, SIZE, SIZE, direction=d, name=f"view {i}")
-            for i, d in enumerate([(0.65, -0.61, 0.44), (-0.5, -0.7, 0.3)])]
+    cams = [
+        Camera.looking_at_box(box, SIZE, SIZE, direction=d, name=f"view {i}")
+        for i, d in enumerate([(0.65, -0.61, 0.44), (-0.5, -0.7, 0.3)])
+    ]
     images = rng.random((len(cams), SIZE, SIZE, 4), dtype=np.float32)
     images[..., 3] = np.where(images[..., 3] < 0.5, 0.0, 1.0) if has_alpha else 1.0
-    return NerfDataset(cameras=cams, aabb=box, names=[c.name for c in cams], images=images, has_alpha=has_alpha,
-                       source="the compile step's tiny scene")
+    return NerfDataset(
+        cameras=cams,
+        aabb=box,
+        names=[c.name for c in cams],
+        images=images,
+        has_alpha=has_alpha,
+        source="the compile step's tiny scene",
+    )
 
 
 def tiny_model(ds: NerfDataset) -> NerfModel:

@@ -56,8 +56,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..bend.posed import PosedRenderer
 from ..bend.baked_volume import check_volume_memory, volume_grid
+from ..bend.posed import PosedRenderer
 from ..bend.volume import bake_box
 from ..errors import EngineError
 from ..geometry.cage import build_cage, build_nerf_cage, build_part_cages, cut_pins, part_cut_pins
@@ -135,10 +135,21 @@ def extract(job: Job) -> tuple[dict, dict]:
         res = extract_nerf_mesh(model, pick=pick, **options)
     colors = res.colors if res.colors is not None else np.full((len(res.vertices), 3), 0.8)
     part = res.part if res.part is not None else np.zeros(len(res.vertices), dtype=np.int64)
-    summary = {"report": res.report(), "kept": len(res.kept), "dropped": res.dropped_count, "timings": res.timings,
-               "n_cut": int(res.cut.sum()), "n_parts": int(part.max()) + 1 if len(part) else 0}
-    return summary, {"vertices": res.vertices, "faces": res.faces, "colors": np.asarray(colors, dtype=np.float32),
-                     "cut": res.cut.astype(np.uint8), "part": part.astype(np.int32)}
+    summary = {
+        "report": res.report(),
+        "kept": len(res.kept),
+        "dropped": res.dropped_count,
+        "timings": res.timings,
+        "n_cut": int(res.cut.sum()),
+        "n_parts": int(part.max()) + 1 if len(part) else 0,
+    }
+    return summary, {
+        "vertices": res.vertices,
+        "faces": res.faces,
+        "colors": np.asarray(colors, dtype=np.float32),
+        "cut": res.cut.astype(np.uint8),
+        "part": part.astype(np.int32),
+    }
 
 
 PROGRESS_EVERY_S = 0.5
@@ -169,7 +180,9 @@ def train(job: Job) -> dict:
     checkpoint = _same_path_key(os.path.join(p["out"], "nerf.ckpt"))
 
     def ours(side: Job) -> bool:  # a preview of this run
-        return isinstance(side.params.get("checkpoint"), str) and _same_path_key(side.params["checkpoint"]) == checkpoint
+        return (
+            isinstance(side.params.get("checkpoint"), str) and _same_path_key(side.params["checkpoint"]) == checkpoint
+        )
 
     def report(trainer):
         job.serve_side_requests(lambda side: _training_preview_of(side, trainer))
@@ -185,18 +198,40 @@ def train(job: Job) -> dict:
         fraction = min(max(fraction, 0.0), 1.0)
         left = (elapsed / fraction - elapsed) if fraction > 0 else float("nan")
         psnr = trainer.last.get("psnr", float("nan")) if trainer.last else float("nan")
-        message = (f"step {done}, PSNR {psnr:.1f} dB, {elapsed:.0f} s" +
-                   (f", about {left:.0f} s left" if left == left else ""))
+        message = f"step {done}, PSNR {psnr:.1f} dB, {elapsed:.0f} s" + (
+            f", about {left:.0f} s left" if left == left else ""
+        )
         job.worker.send({"type": "progress", "id": job.id, "fraction": fraction, "message": message})
 
     with job.serving_side_requests(ours):
-        summary = run_training(p["data"], p["out"], max_seconds=seconds, steps=steps, device=p.get("device", "auto"),
-                               downscale=downscale, resume=bool(p.get("resume")),
-                               overwrite=bool(p.get("overwrite")), progress=False, callback=report,
-                               should_stop=job.cancel_event.is_set, scene_model=p.get("scene", "auto"),
-                               masks=masks)
-    keep = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height", "masks",
-            "masks_reason")
+        summary = run_training(
+            p["data"],
+            p["out"],
+            max_seconds=seconds,
+            steps=steps,
+            device=p.get("device", "auto"),
+            downscale=downscale,
+            resume=bool(p.get("resume")),
+            overwrite=bool(p.get("overwrite")),
+            progress=False,
+            callback=report,
+            should_stop=job.cancel_event.is_set,
+            scene_model=p.get("scene", "auto"),
+            masks=masks,
+        )
+    keep = (
+        "steps",
+        "seconds",
+        "psnr",
+        "loss",
+        "checkpoint",
+        "device",
+        "images",
+        "width",
+        "height",
+        "masks",
+        "masks_reason",
+    )
     return {**{k: summary[k] for k in keep if k in summary}, "cancelled": job.cancel_event.is_set()}
 
 
@@ -213,36 +248,58 @@ def _preview_camera(p: dict, aabb) -> Camera:
     cam = p.get("camera")
     if cam is None:
         size = p.get("size")
-        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                                  for v in size)):
-            raise EngineError(f"training_preview without a camera needs `size`, [width, height] in pixels, got {size!r}")
+        if not (
+            isinstance(size, list)
+            and len(size) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in size)
+        ):
+            raise EngineError(
+                f"training_preview without a camera needs `size`, [width, height] in pixels, got {size!r}"
+            )
         camera = Camera.looking_at_box(np.asarray(aabb, dtype=np.float64).reshape(2, 3), size[0], size[1])
     elif isinstance(cam, dict):
         camera = _camera(cam)
     else:
-        raise EngineError(f"training_preview: `camera` must be a camera (a dict) or null for a view of the NeRF's box, "
-                          f"got {type(cam).__name__}")
+        raise EngineError(
+            f"training_preview: `camera` must be a camera (a dict) or null for a view of the NeRF's box, "
+            f"got {type(cam).__name__}"
+        )
     if not (1 <= camera.width <= PREVIEW_MAX_SIDE and 1 <= camera.height <= PREVIEW_MAX_SIDE):
-        raise EngineError(f"a training preview is at most {PREVIEW_MAX_SIDE}x{PREVIEW_MAX_SIDE} pixels, got "
-                          f"{camera.width}x{camera.height}")
+        raise EngineError(
+            f"a training preview is at most {PREVIEW_MAX_SIDE}x{PREVIEW_MAX_SIDE} pixels, got "
+            f"{camera.width}x{camera.height}"
+        )
     if not (np.isfinite(camera.c2w).all() and all(np.isfinite(v) and v != 0 for v in (camera.fx, camera.fy))):
-        raise EngineError("bad camera in the training preview: its matrix or focal lengths are not finite non-zero numbers")
+        raise EngineError(
+            "bad camera in the training preview: its matrix or focal lengths are not finite non-zero numbers"
+        )
     return camera
 
 
 def _preview_frame(job: Job, camera: Camera, stats: dict, model=None, trainer=None) -> tuple[dict, dict]:
     """The frame of a checkpoint's model, or of the model a trainer is training (between two steps)."""
     progress = lambda done, total: job.progress(done / total, "rendering the preview")  # noqa: E731
-    out = trainer.render_preview(camera, progress) if trainer is not None else \
-        PosedRenderer(model).render(camera, None, progress=progress)
-    stats.update(width=camera.width, height=camera.height,
-                 **{k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
-    return stats, {"rgba": out["rgba"].astype(np.float32, copy=False), "depth": out["depth"].astype(np.float32, copy=False)}
+    out = (
+        trainer.render_preview(camera, progress)
+        if trainer is not None
+        else PosedRenderer(model).render(camera, None, progress=progress)
+    )
+    stats.update(
+        width=camera.width,
+        height=camera.height,
+        **{k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")},
+    )
+    return stats, {
+        "rgba": out["rgba"].astype(np.float32, copy=False),
+        "depth": out["depth"].astype(np.float32, copy=False),
+    }
 
 
 def _checked_preview(p: dict) -> str:
     if not isinstance(p.get("checkpoint"), str) or not p["checkpoint"]:
-        raise EngineError(f"training_preview needs `checkpoint`, the path of the run's nerf.ckpt, got {p.get('checkpoint')!r}")
+        raise EngineError(
+            f"training_preview needs `checkpoint`, the path of the run's nerf.ckpt, got {p.get('checkpoint')!r}"
+        )
     if "camera" not in p:
         raise EngineError("training_preview needs `camera`: a camera (a dict), or null for a view of the NeRF's box")
     return p["checkpoint"]
@@ -254,8 +311,12 @@ def _training_preview_of(side: Job, trainer) -> tuple[dict, dict]:
     _checked_preview(side.params)
     camera = _preview_camera(side.params, trainer.model.aabb.detach().cpu().numpy())
     psnr = trainer.last.get("psnr") if trainer.last else None
-    return _preview_frame(side, camera, {"source": "training", "step": trainer.step_count, "seconds": trainer.elapsed,
-                                         "psnr": psnr}, trainer=trainer)
+    return _preview_frame(
+        side,
+        camera,
+        {"source": "training", "step": trainer.step_count, "seconds": trainer.elapsed, "psnr": psnr},
+        trainer=trainer,
+    )
 
 
 @op("training_preview", side=True)
@@ -265,8 +326,10 @@ def training_preview(job: Job) -> tuple[dict, dict]:
     training ended, or runs elsewhere) it renders the run's checkpoint file."""
     path = _checked_preview(job.params)
     if not os.path.isfile(path):
-        raise EngineError(f"no training of {os.path.dirname(path) or path} runs in this worker and {path} does not "
-                          "exist yet: start the training, or wait for its first checkpoint")
+        raise EngineError(
+            f"no training of {os.path.dirname(path) or path} runs in this worker and {path} does not "
+            "exist yet: start the training, or wait for its first checkpoint"
+        )
     model = cached_model(path, job.params.get("device", "auto"))
     camera = _preview_camera(job.params, model.aabb.detach().cpu().numpy())
     return _preview_frame(job, camera, {"source": "checkpoint", "checkpoint": path}, model=model)
@@ -293,8 +356,15 @@ def prepare_photos(job: Job) -> dict:
             raise EngineError(f"prepare: `{key}` must be an integer, got {value!r}")
         options[key] = value
     try:
-        summary = prepare(p["images"], p["out"], matcher=matcher, log=lambda line: print(line, file=sys.stderr),
-                          progress=job.progress, should_stop=job.cancel_event.is_set, **options)
+        summary = prepare(
+            p["images"],
+            p["out"],
+            matcher=matcher,
+            log=lambda line: print(line, file=sys.stderr),
+            progress=job.progress,
+            should_stop=job.cancel_event.is_set,
+            **options,
+        )
     except PrepareCancelled:
         raise Cancelled() from None
     return {**summary, "dataset": p["out"]}
@@ -308,11 +378,18 @@ def first_surface(job: Job) -> dict:
     model = _model(p)
     threshold = float(p.get("threshold", 10.0))
     box = model.aabb.detach().cpu().double().numpy().reshape(2, 3)
-    point, distance, densest = first_dense_point(density_fn_of(model), p.get("origin"), p.get("direction"), box, threshold)
+    point, distance, densest = first_dense_point(
+        density_fn_of(model), p.get("origin"), p.get("direction"), box, threshold
+    )
     if point is None:
         return {"hit": False, "max_density": densest, "threshold": threshold}
-    return {"hit": True, "point": [float(x) for x in point], "distance": distance, "max_density": densest,
-            "threshold": threshold}
+    return {
+        "hit": True,
+        "point": [float(x) for x in point],
+        "distance": distance,
+        "max_density": densest,
+        "threshold": threshold,
+    }
 
 
 @op("cage")
@@ -329,8 +406,9 @@ def cage(job: Job) -> tuple[dict, dict]:
         if flags is not None and len(flags) != len(vertices):
             raise EngineError(f"{len(flags)} {name} for a mesh of {len(vertices)} vertices")
     refine_edge = p.get("refine_edge") or None  # None: refine_around's default
-    if refine_edge is not None and not (isinstance(refine_edge, (int, float)) and not isinstance(refine_edge, bool)
-                                        and refine_edge > 0):
+    if refine_edge is not None and not (
+        isinstance(refine_edge, (int, float)) and not isinstance(refine_edge, bool) and refine_edge > 0
+    ):
         raise EngineError(f"refine_edge must be a positive length, got {refine_edge!r}")
     job.progress(0.05, "tetrahedralizing")
 
@@ -339,8 +417,16 @@ def cage(job: Job) -> tuple[dict, dict]:
     def build_one(V, F, _index=None):
         if p.get("checkpoint"):
             own_cut = None if cut is None else (cut if _index is None else cut[_part_vertices[_index]])
-            return build_nerf_cage(V, F, _model(p), p.get("margin"), p.get("threshold"), **size,
-                                   log=lambda line: print(line, file=sys.stderr), cut=own_cut)
+            return build_nerf_cage(
+                V,
+                F,
+                _model(p),
+                p.get("margin"),
+                p.get("threshold"),
+                **size,
+                log=lambda line: print(line, file=sys.stderr),
+                cut=own_cut,
+            )
         return build_cage(V, F, p.get("margin"), **size)
 
     several = part is not None and len(np.unique(part)) > 1
@@ -352,9 +438,9 @@ def cage(job: Job) -> tuple[dict, dict]:
     if refine is not None:
         job.progress(0.8, "refining the cage around the selection")
         n_before = len(built.tets)
-        built.vertices, built.tets, edge, box = refine_around(built.vertices, built.tets,
-                                                              vertices[np.asarray(refine, dtype=bool)], built.margin,
-                                                              refine_edge)
+        built.vertices, built.tets, edge, box = refine_around(
+            built.vertices, built.tets, vertices[np.asarray(refine, dtype=bool)], built.margin, refine_edge
+        )
         if several:
             cage_part = extend_vertex_labels(cage_part, built.tets, len(built.vertices))
         refined = {"edge": edge, "box": box.tolist(), "tets_before": int(n_before)}
@@ -367,12 +453,25 @@ def cage(job: Job) -> tuple[dict, dict]:
         pinned = cut_pins(built.vertices, vertices, cut, built.margin)
     if not p.get("pin_cut", True):
         pinned = np.zeros(0, dtype=np.int64)
-    result = {"n_vertices": int(len(built.vertices)), "n_tets": int(len(built.tets)), "margin": built.margin,
-              "clearance": built.clearance, "n_outside": embedding.n_outside, "timings": built.timings,
-              "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0, "n_pinned": int(len(pinned)),
-              "warnings": list(built.warnings), "refined": refined}
-    return result, {"vertices": built.vertices, "tets": built.tets, "tet_ids": embedding.tet_ids,
-                    "weights": embedding.weights, "pinned_vertices": pinned}
+    result = {
+        "n_vertices": int(len(built.vertices)),
+        "n_tets": int(len(built.tets)),
+        "margin": built.margin,
+        "clearance": built.clearance,
+        "n_outside": embedding.n_outside,
+        "timings": built.timings,
+        "n_cut": int(np.count_nonzero(cut)) if cut is not None else 0,
+        "n_pinned": int(len(pinned)),
+        "warnings": list(built.warnings),
+        "refined": refined,
+    }
+    return result, {
+        "vertices": built.vertices,
+        "tets": built.tets,
+        "tet_ids": embedding.tet_ids,
+        "weights": embedding.weights,
+        "pinned_vertices": pinned,
+    }
 
 
 def _embedding(cage_arrays: dict, embedding_arrays: dict) -> Embedding:
@@ -396,7 +495,11 @@ class HandlePose(NamedTuple):
 def _handle_pose(job: Job, pose: dict) -> HandlePose:
     """Solve the handles' pose with the shared cage, embedding and regions the request names."""
     shared = SESSION.shared(job, "cage", "embedding", "regions")
-    (cage_key, cage_arrays), (emb_key, emb_arrays), (reg_key, reg) = shared["cage"], shared["embedding"], shared["regions"]
+    (cage_key, cage_arrays), (emb_key, emb_arrays), (reg_key, reg) = (
+        shared["cage"],
+        shared["embedding"],
+        shared["regions"],
+    )
     embedding = SESSION.derived("embedding", (cage_key, emb_key), lambda: _embedding(cage_arrays, emb_arrays))
     mode = pose.get("mode", "ARAP")
     names = list(pose.get("handle_names") or [])
@@ -404,8 +507,16 @@ def _handle_pose(job: Job, pose: dict) -> HandlePose:
     def build():
         job.progress(0.05, f"{mode} precomputation")
         regions = split_regions(reg["handle_index"], reg["handle_counts"])
-        return RegionDeformer(cage_arrays["vertices"], cage_arrays["tets"], embedding, regions, reg["pin_index"],
-                              names or None, mode, cage_pins=reg.get("cage_pin_index"))
+        return RegionDeformer(
+            cage_arrays["vertices"],
+            cage_arrays["tets"],
+            embedding,
+            regions,
+            reg["pin_index"],
+            names or None,
+            mode,
+            cage_pins=reg.get("cage_pin_index"),
+        )
 
     key = (cage_key, emb_key, reg_key, mode, tuple(names))
     fresh = not SESSION.has("deformer", key)
@@ -423,17 +534,24 @@ def solve(job: Job) -> tuple[dict, dict]:
     extracted mesh (float32, its vertex order), which is all the live preview draws."""
     posed = _handle_pose(job, job.params)
     if job.params.get("answer") == "surface":
-        surface = SESSION.derived("surface map", posed.embedding_key,
-                                  lambda: SurfaceMap(posed.embedding, len(posed.deformed)), keep=2)
+        surface = SESSION.derived(
+            "surface map", posed.embedding_key, lambda: SurfaceMap(posed.embedding, len(posed.deformed)), keep=2
+        )
         return posed.stats, {"surface": surface.apply(posed.deformed).astype(np.float32)}
     return posed.stats, {"deformed_vertices": np.asarray(posed.deformed, dtype=np.float64)}
 
 
 def _camera(cam: dict) -> Camera:
     try:
-        return Camera(c2w=np.asarray(cam["camera_to_world"], dtype=np.float64).reshape(4, 4), fx=float(cam["fx"]),
-                      fy=float(cam["fy"]), cx=float(cam["cx"]), cy=float(cam["cy"]), width=int(cam["width"]),
-                      height=int(cam["height"]))
+        return Camera(
+            c2w=np.asarray(cam["camera_to_world"], dtype=np.float64).reshape(4, 4),
+            fx=float(cam["fx"]),
+            fy=float(cam["fy"]),
+            cx=float(cam["cx"]),
+            cy=float(cam["cy"]),
+            width=int(cam["width"]),
+            height=int(cam["height"]),
+        )
     except (KeyError, TypeError, ValueError) as exc:
         raise EngineError(f"bad camera in the render request: {exc}") from None
 
@@ -455,11 +573,17 @@ def _posed(job: Job, model, pose: dict | None):
             raise EngineError("a cage pose needs its deformed_vertices")
         deformed = np.asarray(job.arrays["deformed_vertices"], dtype=np.float64)
         if deformed.shape != cage_arrays["vertices"].shape:
-            raise EngineError(f"deformed cage vertices must be of the cage's shape {cage_arrays['vertices'].shape}, "
-                              f"got {deformed.shape}")
+            raise EngineError(
+                f"deformed cage vertices must be of the cage's shape {cage_arrays['vertices'].shape}, "
+                f"got {deformed.shape}"
+            )
         check_coordinates(deformed, "the cage as its modifiers deform it")
-    renderer = SESSION.derived("renderer", (id(model), cage_key),
-                               lambda: PosedRenderer(model, cage_arrays["vertices"], cage_arrays["tets"]), keep=2)
+    renderer = SESSION.derived(
+        "renderer",
+        (id(model), cage_key),
+        lambda: PosedRenderer(model, cage_arrays["vertices"], cage_arrays["tets"]),
+        keep=2,
+    )
     return renderer, deformed, stats
 
 
@@ -481,11 +605,15 @@ def render(job: Job) -> tuple[dict, dict]:
     model = _model(params)
     camera = _camera(params["camera"])
     renderer, deformed, stats = _posed(job, model, params.get("pose"))
-    out = renderer.render(camera, deformed, progress=lambda done, total: job.progress(done / total, "rendering"),
-                          substeps=substeps)
+    out = renderer.render(
+        camera, deformed, progress=lambda done, total: job.progress(done / total, "rendering"), substeps=substeps
+    )
     stats.update({k: float(out[k]) for k in ("density_samples_per_ray", "color_samples_per_ray")})
     _inversion_stats(stats, out["inversion"])
-    return stats, {"rgba": out["rgba"].astype(np.float32, copy=False), "depth": out["depth"].astype(np.float32, copy=False)}
+    return stats, {
+        "rgba": out["rgba"].astype(np.float32, copy=False),
+        "depth": out["depth"].astype(np.float32, copy=False),
+    }
 
 
 # Pixels per side of the view `warm` renders: rays enough to meet the NeRF's occupied cells and so run
@@ -528,11 +656,17 @@ def bake_volume(job: Job) -> tuple[dict, dict]:
     model = _model(params)
     renderer, deformed, stats = _posed(job, model, params.get("pose"))
     box = bake_box(extent, model, deformed if deformed is not None else None)
-    grid = volume_grid(box, params.get("resolution", 256), content=model.aabb.detach().cpu().double().reshape(2, 3).numpy())
+    grid = volume_grid(
+        box, params.get("resolution", 256), content=model.aabb.detach().cpu().double().reshape(2, 3).numpy()
+    )
     check_volume_memory(grid)
     job.progress(0.0, "baking")
-    baked, inversion = renderer.bake(grid, deformed, supersample=params.get("supersample", 1),
-                                     progress=lambda done, total: job.progress(done / total, "baking"))
+    baked, inversion = renderer.bake(
+        grid,
+        deformed,
+        supersample=params.get("supersample", 1),
+        progress=lambda done, total: job.progress(done / total, "baking"),
+    )
     stats.update(baked.stats, shape=list(grid.shape), index_to_nerf=grid.index_to_nerf.tolist())
     _inversion_stats(stats, inversion)
     return stats, {"index": baked.index, "density": baked.density, "color": baked.color}

@@ -39,7 +39,8 @@ def write_message(stream: BinaryIO, header: dict, arrays: dict[str, np.ndarray] 
         arrays = {}
     header = dict(header)
     header["_arrays"] = [
-        {"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "nbytes": int(a.nbytes)} for name, a in arrays.items()
+        {"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "nbytes": int(a.nbytes)}
+        for name, a in arrays.items()
     ]
     body = json.dumps(header, separators=(",", ":")).encode()
     stream.write(MAGIC + _LENGTH.pack(len(body)) + body)

@@ -16,7 +16,8 @@ from __future__ import annotations
 import contextlib
 import queue
 import threading
-from typing import TYPE_CHECKING, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 from ..errors import EngineError
 
@@ -50,7 +51,7 @@ class Job:
         self.accepts_side: Callable[[Job], bool] | None = None
 
     @contextlib.contextmanager
-    def serving_side_requests(self, accepts: Callable[["Job"], bool]) -> Iterator[None]:
+    def serving_side_requests(self, accepts: Callable[[Job], bool]) -> Iterator[None]:
         """While the block runs, the worker hands this job the side requests that `accepts(side_job)`
         takes; those still queued when it ends go to the worker's main queue."""
         self.worker.open_side_requests(self, accepts)
@@ -59,7 +60,7 @@ class Job:
         finally:
             self.worker.close_side_requests(self)
 
-    def serve_side_requests(self, handler: "Handler") -> int:
+    def serve_side_requests(self, handler: Handler) -> int:
         """Answer the side requests queued so far with `handler(side_job)`; each answer (or error)
         goes out with the side request's id. Returns how many were answered."""
         served = 0

@@ -23,8 +23,12 @@ from .registry import Job, Missing
 SLOTS = {
     "cage": {"vertices": ((-1, 3), "f"), "tets": ((-1, 4), "i")},
     "embedding": {"tet_ids": ((-1,), "i"), "weights": ((-1, 4), "f")},
-    "regions": {"handle_index": ((-1,), "i"), "handle_counts": ((-1,), "i"), "pin_index": ((-1,), "i"),
-                "cage_pin_index": ((-1,), "i")},
+    "regions": {
+        "handle_index": ((-1,), "i"),
+        "handle_counts": ((-1,), "i"),
+        "pin_index": ((-1,), "i"),
+        "cage_pin_index": ((-1,), "i"),
+    },
 }
 # Arrays a slot may go without: cage vertices pinned at an edit region's cut (none without a cut).
 OPTIONAL = {"regions": {"cage_pin_index"}}
@@ -73,7 +77,7 @@ class Session:
             if not isinstance(key, str) or not key:
                 raise EngineError(f"request {job.op!r} names no {slot} (params['shared'][{slot!r}])")
             prefix = f"{slot}."
-            sent = {name[len(prefix):]: a for name, a in job.arrays.items() if name.startswith(prefix)}
+            sent = {name[len(prefix) :]: a for name, a in job.arrays.items() if name.startswith(prefix)}
             store = self._content[slot]
             if sent:
                 store[key] = _validate(slot, sent)

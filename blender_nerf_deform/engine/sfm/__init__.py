@@ -11,6 +11,8 @@ def photo_names(folder) -> list[str]:
     import os
 
     try:
-        return sorted(e.name for e in os.scandir(folder) if e.is_file() and os.path.splitext(e.name)[1] in IMAGE_SUFFIXES)
+        return sorted(
+            e.name for e in os.scandir(folder) if e.is_file() and os.path.splitext(e.name)[1] in IMAGE_SUFFIXES
+        )
     except OSError:
         return []

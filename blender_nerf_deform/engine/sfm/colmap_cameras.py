@@ -39,8 +39,15 @@ def camera_intrinsics(model: str, params, width: int, height: int, where: str = 
     if len(values) != len(names):
         raise EngineError(f"{where}: a {model} camera has {len(names)} parameters, got {len(list(params))}")
     f = values.pop("f", None)
-    out = {"camera_model": camera_model, "fl_x": values.pop("fx", f), "fl_y": values.pop("fy", f),
-           "cx": values.pop("cx"), "cy": values.pop("cy"), "w": int(width), "h": int(height)}
+    out = {
+        "camera_model": camera_model,
+        "fl_x": values.pop("fx", f),
+        "fl_y": values.pop("fy", f),
+        "cx": values.pop("cx"),
+        "cy": values.pop("cy"),
+        "w": int(width),
+        "h": int(height),
+    }
     out.update(values)  # k1.., p1..
     bad = [k for k, v in out.items() if isinstance(v, float) and not np.isfinite(v)]
     if bad:
@@ -66,11 +73,23 @@ def reconstruction_cameras(reconstruction) -> list[dict]:
         pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
         rotation, translation = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
         if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
-            raise EngineError(f"image {image.name} (id {image.image_id}): its pose (cam_from_world) has non-finite values")
+            raise EngineError(
+                f"image {image.name} (id {image.image_id}): its pose (cam_from_world) has non-finite values"
+            )
         c2w = camera_to_world(rotation, translation)
-        out.append({"name": image.name, "c2w": c2w,
-                    "intrinsics": camera_intrinsics(cam.model.name, cam.params, cam.width, cam.height,
-                                                    where=f"camera {cam.camera_id} of image {image.name}")})
+        out.append(
+            {
+                "name": image.name,
+                "c2w": c2w,
+                "intrinsics": camera_intrinsics(
+                    cam.model.name,
+                    cam.params,
+                    cam.width,
+                    cam.height,
+                    where=f"camera {cam.camera_id} of image {image.name}",
+                ),
+            }
+        )
     return sorted(out, key=lambda c: c["name"])
 
 

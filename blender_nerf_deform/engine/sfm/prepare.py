@@ -32,9 +32,9 @@ import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -89,7 +89,9 @@ def photos_in(folder: Path) -> list[str]:
         raise EngineError(f"--images {folder}: no such folder")
     names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix in IMAGE_SUFFIXES)
     if len(names) < 3:
-        raise EngineError(f"--images {folder}: {len(names)} photos (.jpg/.png) found; structure from motion needs at least 3")
+        raise EngineError(
+            f"--images {folder}: {len(names)} photos (.jpg/.png) found; structure from motion needs at least 3"
+        )
     return names
 
 
@@ -136,9 +138,11 @@ def check_one_size(folder: Path, names: list[str]) -> None:
     odd = [name for name, size in sizes.items() if size != (w, h)]
     shown = ", ".join(f"{name} is {sizes[name][0]}x{sizes[name][1]}" for name in odd[:5])
     more = f" and {len(odd) - 5} more differ" if len(odd) > 5 else ""
-    raise EngineError(f"--images {folder}: the photos must all have one size (prepare takes them as one camera), but "
-                      f"{shown}{more}, where {n_common} of the {len(sizes)} photos are {w}x{h}: resize those or "
-                      "leave them out")
+    raise EngineError(
+        f"--images {folder}: the photos must all have one size (prepare takes them as one camera), but "
+        f"{shown}{more}, where {n_common} of the {len(sizes)} photos are {w}x{h}: resize those or "
+        "leave them out"
+    )
 
 
 def _place(src: Path, dst: Path) -> None:
@@ -166,9 +170,17 @@ def transforms_for(cameras: list[dict], image_folder: str = "images") -> dict:
     return out
 
 
-def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "exhaustive", max_size: int = 1600,
-            seed: int = 0, log=print, progress: Callable[[float, str], None] | None = None,
-            should_stop: Callable[[], bool] | None = None, colmap_log: bool = False) -> dict:
+def prepare(
+    images: str | os.PathLike,
+    out: str | os.PathLike,
+    matcher: str = "exhaustive",
+    max_size: int = 1600,
+    seed: int = 0,
+    log=print,
+    progress: Callable[[float, str], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    colmap_log: bool = False,
+) -> dict:
     """Run structure from motion on the photos in `images`, write `out`/transforms.json + `out`/images/.
 
     Returns a summary: registered and unregistered photos, timings, the camera model found.
@@ -203,8 +215,10 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         if progress is not None:
             span = STAGE_START["writing"] - STAGE_START["mapping"]
             try:
-                progress(STAGE_START["mapping"] + span * min(registered_so_far[0] / len(names), 1.0),
-                         f"mapping: {registered_so_far[0]} of {len(names)} photos placed")
+                progress(
+                    STAGE_START["mapping"] + span * min(registered_so_far[0] / len(names), 1.0),
+                    f"mapping: {registered_so_far[0]} of {len(names)} photos placed",
+                )
             except Exception:
                 pass  # a cancel: the token stops the mapper
 
@@ -220,9 +234,16 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = int(max_size)
         with _cancellation(pycolmap, should_stop) as token:
-            pycolmap.extract_features(database, src, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-                                      cancellation_token=token)
+            pycolmap.extract_features(
+                database,
+                src,
+                image_names=names,
+                camera_mode=pycolmap.CameraMode.SINGLE,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+                cancellation_token=token,
+            )
         timings["features_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         stage("matching", f"{matcher} matching")
@@ -235,24 +256,36 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         options = pycolmap.IncrementalPipelineOptions()
         options.random_seed = int(seed)
         with _cancellation(pycolmap, should_stop) as token:
-            maps = pycolmap.incremental_mapping(database, src, work / "colmap" / "sparse", options,
-                                                next_image_callback=next_image, cancellation_token=token)
+            maps = pycolmap.incremental_mapping(
+                database,
+                src,
+                work / "colmap" / "sparse",
+                options,
+                next_image_callback=next_image,
+                cancellation_token=token,
+            )
         timings["mapping_s"] = time.perf_counter() - t0
         if not maps:
-            raise EngineError(f"structure from motion registered none of the {len(names)} photos in {src}: COLMAP found no "
-                              "initial pair with enough matches (photos too different, too little texture or overlap)"
-                              + _small_photos_hint(src, names))
+            raise EngineError(
+                f"structure from motion registered none of the {len(names)} photos in {src}: COLMAP found no "
+                "initial pair with enough matches (photos too different, too little texture or overlap)"
+                + _small_photos_hint(src, names)
+            )
         reconstruction = max(maps.values(), key=lambda r: r.num_reg_images())
         cameras = reconstruction_cameras(reconstruction)
         registered = {c["name"] for c in cameras}
         missing = [n for n in names if n not in registered]
         if len(cameras) < 3:
-            raise EngineError(f"structure from motion registered only {len(cameras)} of {len(names)} photos in {src} "
-                              f"({len(maps)} separate reconstruction(s)); take more overlapping photos"
-                              + _small_photos_hint(src, names))
+            raise EngineError(
+                f"structure from motion registered only {len(cameras)} of {len(names)} photos in {src} "
+                f"({len(maps)} separate reconstruction(s)); take more overlapping photos"
+                + _small_photos_hint(src, names)
+            )
         if missing:
-            log(f"prepare: {len(missing)} of {len(names)} photos not registered, left out: {', '.join(missing[:10])}"
-                + (" ..." if len(missing) > 10 else ""))
+            log(
+                f"prepare: {len(missing)} of {len(names)} photos not registered, left out: {', '.join(missing[:10])}"
+                + (" ..." if len(missing) > 10 else "")
+            )
         points = np.array([p.xyz for p in reconstruction.points3D.values()]) if reconstruction.num_points3D() else None
         c2ws = np.stack([c["c2w"] for c in cameras])
         T = orientation(c2ws, points)
@@ -265,9 +298,15 @@ def prepare(images: str | os.PathLike, out: str | os.PathLike, matcher: str = "e
         transforms = transforms_for(cameras)
         (work / "transforms.json").write_text(json.dumps(transforms, indent=1))
         shutil.rmtree(work / "colmap")
-        summary = {"photos": len(names), "registered": len(cameras), "unregistered": missing, "timings": timings,
-                   "camera_model": transforms.get("camera_model", "per frame"), "points": 0 if points is None else len(points),
-                   "similarity": T.tolist()}
+        summary = {
+            "photos": len(names),
+            "registered": len(cameras),
+            "unregistered": missing,
+            "timings": timings,
+            "camera_model": transforms.get("camera_model", "per frame"),
+            "points": 0 if points is None else len(points),
+            "similarity": T.tolist(),
+        }
         (work / "prepare.json").write_text(json.dumps(summary, indent=1))
         if dst.exists():
             dst.rmdir()  # empty (checked above)
