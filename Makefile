@@ -2,6 +2,7 @@
 #   make demo   set up .venv, then run the main job on the embedded default scene
 #   make test   set up .venv, then run the whole test suite
 #   make smoke  the extension zip in the bpy module of every supported Blender (tools/smoke_blender.py)
+#   make lint   ruff: the lint rules and the formatting of pyproject.toml, on the whole tree
 
 PYTHON ?= python3.11
 VENV   := .venv
@@ -22,7 +23,7 @@ PYTHON313      ?= env PYENV_VERSION=3.13.0 python3.13
 SMOKE_ARGS     ?=
 smoke_python    = $(if $(filter 5.0,$(1)),$(VPY),$(SMOKE)/bpy-$(1)/bin/python)
 
-.PHONY: setup test demo extension smoke clean
+.PHONY: setup test demo extension smoke lint clean
 
 setup: $(STAMP)
 
@@ -37,6 +38,10 @@ $(STAMP): requirements.txt blender_nerf_deform/engine/requirements.txt blender_n
 
 test: setup
 	$(VPY) -m pytest addon_tests -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
+
+lint: setup
+	$(VPY) -m ruff check .
+	$(VPY) -m ruff format --check .
 
 demo: setup
 	$(VPY) tools/demo.py
