@@ -4,8 +4,8 @@ kernel file of its stage changes. The kernel modules (`*_kernels.py`) take `njit
 numba (0.68) files a cached kernel under a hash of its source folder's path and stamps it with the
 content of that one file. Two things follow that the engine does not want:
 
-- every copy of the engine compiles the same kernels again (`compile` from nothing: 26-53 s on 2
-  cores): the repository's command line, the extension installed in each Blender's user folder, a
+- every copy of the engine compiles the same kernels again (`compile` from nothing takes tens of
+  seconds): the repository's command line, the extension installed in each Blender's user folder, a
   test's copy. `make smoke`'s five releases each compiled them; `make demo`'s worker compiled the frame
   kernels its training had just compiled;
 - surface_arap_kernels.py inlines functions of arap_kernels.py: a change to arap_kernels.py alone left

@@ -29,9 +29,9 @@ The render engine (`engine`):
   off unless `denoise`, the seed of the layout, and a one-pixel box pixel filter, so a pixel is
   the average over its own area, centred where the NeRF's ray goes. Why Cycles on the CPU: it
   needs no GPU or display. With the bpy module headless (Blender 5.0.1, no GPU), Workbench
-  renders through a software EGL context (with EGL errors printed) and EEVEE spends ~30 s
-  compiling shaders for one 64x48 view, while Cycles renders such a view in a few milliseconds
-  to a tenth of a second and is deterministic for a given seed.
+  renders through a software EGL context (with EGL errors printed) and EEVEE compiles its
+  shaders for far longer than a small view takes to render, while Cycles renders such a view
+  at once and is deterministic for a given seed.
 - "KEEP" (Capture Dataset's default): the scene's own engine and its sampling settings
   (samples, denoising, pixel filter, device). Only what makes a view a dataset image is set:
   resolution (100 %, the pixel aspect), film transparency, the output format (PNG, RGBA or

@@ -85,10 +85,10 @@ def worker_environment(inherit_pythonpath: bool = True) -> tuple[dict, str]:
     """(environment, working folder) of an engine process started for the worker: the engine's package
     importable, numba's kernel cache in the user folder (so that Set Up Worker's `compile` fills the
     cache the worker reads), and no bytecode written: an installed extension's own folder is Blender's
-    to replace, not ours to write. The engine's few modules compile at each start (~0.1 s); torch and the
-    other packages load the bytecode their install wrote. (Redirecting all bytecode to the user folder
-    with PYTHONPYCACHEPREFIX, as before, hid that bytecode too: every start compiled torch again where
-    PYTHONDONTWRITEBYTECODE is set, as in containers, 3.7 s against 1.3 s; BENCHMARKS.md, issue 28.)"""
+    to replace, not ours to write. The engine's few modules compile at each start, which is cheap; torch
+    and the other packages load the bytecode their install wrote. (Redirecting all bytecode to the user
+    folder with PYTHONPYCACHEPREFIX would hide that bytecode too: where PYTHONDONTWRITEBYTECODE is set, as
+    in containers, every start would compile torch again, which costs more than the rest of the start.)"""
     env = dict(os.environ)
     env.pop("PYTHONHOME", None)
     inherited = env.get("PYTHONPATH", "") if inherit_pythonpath else ""

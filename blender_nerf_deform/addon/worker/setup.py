@@ -153,7 +153,7 @@ def find_base_python(preferred: str = "") -> str:
         version = _python_version(python)
         if version == PYTHON_VERSION:
             return python
-        tried.append(f"{python} ({'Python %d.%d' % version if version else 'no venv/ensurepip'})")
+        tried.append(f"{python} ({f'Python {version[0]}.{version[1]}' if version else 'no venv/ensurepip'})")
         if python == preferred:
             what = f"Python {version[0]}.{version[1]}" if version else "not a Python with venv and ensurepip"
             raise SetupError(
@@ -215,7 +215,7 @@ def check_environment(python: Path) -> dict:
         proc = subprocess.run([str(python), "-c", _CHECK, args], capture_output=True, text=True, timeout=300)
     except (OSError, subprocess.TimeoutExpired) as exc:
         return {"ok": False, "problem": f"{python} does not run: {exc}"}
-    line = next((l for l in proc.stdout.splitlines() if l.startswith("NERF_DEFORM_CHECK ")), None)
+    line = next((out for out in proc.stdout.splitlines() if out.startswith("NERF_DEFORM_CHECK ")), None)
     if proc.returncode != 0 or line is None:
         last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
         return {"ok": False, "problem": f"{python} cannot import the engine: {last}"}
@@ -366,7 +366,7 @@ class SetupJob:
 
     def _compile(self, python: str, start: float) -> None:
         """The engine's `compile`: its CPU kernels into the cache the worker reads, so the artist's
-        first frame does not wait for them (a 270x480 frame: 11 s on a fresh cache, 3 s after)."""
+        first frame does not wait for them (compiling costs several times a frame)."""
         self._say(start, "compiling the engine's kernels (once)")
         env, _work = worker_client.worker_environment(inherit_pythonpath=False)
         self._command(
@@ -426,8 +426,8 @@ class SetupJob:
             self._proc = None
         self._check_cancel()
         if code != 0:
-            errors = [l for l in lines if l.startswith("ERROR")] or lines[-1:] or ["no output"]
-            if any(sign in l for l in lines for sign in _NETWORK_SIGNS):
+            errors = [out for out in lines if out.startswith("ERROR")] or lines[-1:] or ["no output"]
+            if any(sign in out for out in lines for sign in _NETWORK_SIGNS):
                 raise SetupError(
                     f"{what}: the package index cannot be reached (no network?): {errors[-1]} (log: {self.log_path})"
                 )
@@ -456,7 +456,7 @@ _MODES = (
 
 
 class NERFDEFORM_OT_setup_worker(bpy.types.Operator):
-    """Make a Python environment for the NeRF engine (torch and the engine's packages, downloaded from the package index) and set Worker Python to it"""
+    """Make a Python environment for the NeRF engine (torch and the engine's packages, downloaded from the package index) and set Worker Python to it"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.setup_worker"
     bl_label = "Set Up Worker"

@@ -45,8 +45,8 @@ from .colmap_cameras import reconstruction_cameras
 from .orient import apply_to_cameras, orientation
 
 MATCHERS = ("exhaustive", "sequential")
-# Where each stage starts in the progress fraction (14 photos of 320x240 on 2 cores: features 0.9 s,
-# matching 1.1 s, mapping 2.2 s).
+# Where each stage starts in the progress fraction: roughly each stage's share of a run's time on a small
+# capture (mapping takes the longest, features and matching about a quarter each).
 STAGE_START = {"features": 0.0, "matching": 0.2, "mapping": 0.45, "writing": 0.95}
 # A failed run whose photos' longest side is below this says they are small (_small_photos_hint).
 SMALL_PHOTO_PX = 1000
