@@ -62,9 +62,13 @@ def stage(dest: Path, manifest: Path = MANIFEST) -> Path:
     """Lay out the extension's source as Blender wants it: the manifest beside the package's files."""
     shutil.copytree(PACKAGE, dest, ignore=_IGNORE)
     shutil.copy2(manifest, dest / "blender_manifest.toml")
-    # The docstrings send readers to docs/ARCHITECTURE.md: an installed extension carries it too.
+    # The docstrings send readers to docs/ARCHITECTURE.md: an installed extension carries it too, and the
+    # pages it links (the command line, the datasets, ...); not the benchmark notebook, history only.
     (dest / "docs").mkdir()
     shutil.copy2(ARCHITECTURE, dest / "docs" / "ARCHITECTURE.md")
+    for page in sorted(ARCHITECTURE.parent.glob("*.md")):
+        if page.name != "benchmarks-history.md":
+            shutil.copy2(page, dest / "docs" / page.name)
     return dest
 
 
