@@ -21,7 +21,7 @@ runs Blender's own exit only when the `bpy` module is freed: a process with a
 preview solve still queued segfaulted at exit in 4.2 (exit 139) and hung there
 in 4.5. Blender 5.x exits either way.
 
-The worker session (docs/ARCHITECTURE.md): a request may name shared content, `shared =
+The worker session (engine/service/requests.py): a request may name shared content, `shared =
 {slot: (content key, loader)}`. The client remembers what it gave the running
 worker and calls a slot's loader (and sends its arrays) only for a key that
 worker has not been given; a worker that answers "missing" (it dropped the
