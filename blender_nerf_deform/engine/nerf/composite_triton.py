@@ -119,6 +119,16 @@ def composite_round(
 
 
 @triton.jit
+def _row_span(first_ptr, counts_ptr, alive_ptr, n_rows, size, BLOCK: tl.constexpr):
+    """This program's rows: which are real, where each row's samples start, how many (cut at `size`), its ray."""
+    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    valid = rows < n_rows
+    first = tl.load(first_ptr + rows, mask=valid, other=0)
+    count = tl.minimum(tl.load(counts_ptr + rows, mask=valid, other=0), tl.maximum(size - first, 0))
+    return valid, first, count, tl.load(alive_ptr + rows, mask=valid, other=0)
+
+
+@triton.jit
 def _train_forward(
     sigma_ptr,
     dt_ptr,
@@ -135,11 +145,7 @@ def _train_forward(
     size,
     BLOCK: tl.constexpr,
 ):
-    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    valid = rows < n_rows
-    first = tl.load(first_ptr + rows, mask=valid, other=0)
-    count = tl.minimum(tl.load(counts_ptr + rows, mask=valid, other=0), tl.maximum(size - first, 0))
-    ray = tl.load(alive_ptr + rows, mask=valid, other=0)
+    valid, first, count, ray = _row_span(first_ptr, counts_ptr, alive_ptr, n_rows, size, BLOCK)
     acc = tl.zeros((BLOCK,), dtype=tl.float64)
     r = tl.zeros((BLOCK,), dtype=tl.float32)
     g = tl.zeros((BLOCK,), dtype=tl.float32)
@@ -201,11 +207,7 @@ def _train_backward(
     BLOCK: tl.constexpr,
 ):
     """dL/dtau_k = e_k T_(k+1) - sum over the later samples i of e_i w_i (T_(k+1): the transmittance past k)."""
-    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    valid = rows < n_rows
-    first = tl.load(first_ptr + rows, mask=valid, other=0)
-    count = tl.minimum(tl.load(counts_ptr + rows, mask=valid, other=0), tl.maximum(size - first, 0))
-    ray = tl.load(alive_ptr + rows, mask=valid, other=0)
+    valid, first, count, ray = _row_span(first_ptr, counts_ptr, alive_ptr, n_rows, size, BLOCK)
     longest = tl.max(tl.where(valid, count, 0), axis=0)
     total = tl.zeros((BLOCK,), dtype=tl.float32)
     i = 0

@@ -60,6 +60,17 @@ def _corner_weight(fx, fy, fz, c: tl.constexpr):
 
 
 @triton.jit
+def _level_cells(x_ptr, rows, valid, res_ptr, offset_ptr, lvl):
+    """A level's integer resolution, table offset, and each point's cell and fraction along x, y, z."""
+    res = tl.load(res_ptr + lvl)
+    offset = tl.load(offset_ptr + lvl)
+    ix, fx = _cell(x_ptr, rows, valid, res, 0)
+    iy, fy = _cell(x_ptr, rows, valid, res, 1)
+    iz, fz = _cell(x_ptr, rows, valid, res, 2)
+    return res.to(tl.int64), offset, ix, fx, iy, fy, iz, fz
+
+
+@triton.jit
 def _hash_forward(
     x_ptr,
     table_ptr,
@@ -77,12 +88,7 @@ def _hash_forward(
     valid = rows < n
     feats = tl.arange(0, F)
     for lvl in tl.static_range(N_LEVELS):
-        res = tl.load(res_ptr + lvl)
-        r_int = res.to(tl.int64)
-        offset = tl.load(offset_ptr + lvl)
-        ix, fx = _cell(x_ptr, rows, valid, res, 0)
-        iy, fy = _cell(x_ptr, rows, valid, res, 1)
-        iz, fz = _cell(x_ptr, rows, valid, res, 2)
+        r_int, offset, ix, fx, iy, fy, iz, fz = _level_cells(x_ptr, rows, valid, res_ptr, offset_ptr, lvl)
         acc = tl.zeros((BLOCK, F), dtype=tl.float32)
         for c in tl.static_range(8):
             row = _corner_row(ix, iy, iz, c, r_int, lvl < N_DENSE, table_mask, offset)
@@ -110,12 +116,7 @@ def _hash_backward(
     valid = rows < n
     feats = tl.arange(0, F)
     for lvl in tl.static_range(N_LEVELS):
-        res = tl.load(res_ptr + lvl)
-        r_int = res.to(tl.int64)
-        offset = tl.load(offset_ptr + lvl)
-        ix, fx = _cell(x_ptr, rows, valid, res, 0)
-        iy, fy = _cell(x_ptr, rows, valid, res, 1)
-        iz, fz = _cell(x_ptr, rows, valid, res, 2)
+        r_int, offset, ix, fx, iy, fy, iz, fz = _level_cells(x_ptr, rows, valid, res_ptr, offset_ptr, lvl)
         g = tl.load(
             grad_ptr + rows[:, None] * (N_LEVELS * F) + lvl * F + feats[None, :], mask=valid[:, None], other=0.0
         )
