@@ -128,7 +128,7 @@ def test_the_check_catches_made_up_paths():
 
 
 def test_architecture_names_every_module():
-    """A module added without a word in ARCHITECTURE's tables fails here: the map stays complete."""
+    """A module (or a tool) added without a word in ARCHITECTURE fails here: the map stays complete."""
     text = (REPO / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
     named = set(re.findall(r"([\w]+\.py)\b", text))
     modules = sorted(
@@ -138,6 +138,8 @@ def test_architecture_names_every_module():
     )
     assert modules, "no modules found"
     assert [m for m in modules if m.rsplit("/", 1)[-1] not in named] == []
+    tools = sorted(p.name for p in (REPO / "tools").glob("*.py") if p.name != "__init__.py")
+    assert [t for t in tools if t not in named] == [], "tools/ scripts missing from ARCHITECTURE section 6"
 
 
 def _commands():
