@@ -42,10 +42,11 @@ if str(REPO) not in sys.path:
 from fixtures.floor_data import floor_nerf  # noqa: E402,F401  (a statue on a floor, rendered by Blender, trained)
 from fixtures.trained import sphere_nerf  # noqa: E402,F401  (a small trained NeRF, session-scoped)
 
-# The modules that take minutes, heaviest first (measured: a clean-clone `make test`, BENCHMARKS.md
-# "Test suite"): started first, so that the two xdist workers do not end with one of them running a
-# long module alone. The Makefile passes --no-loadscope-reorder: by default xdist queues the modules
-# with the most tests first, which put the floor NeRF's few tests (a 3-minute fixture) last.
+# The modules that take minutes, heaviest first (measured: a clean-clone `make test`,
+# docs/benchmarks-history.md, "Test suite"): started first, so that the two xdist workers do not end
+# with one of them running a long module alone. The Makefile passes --no-loadscope-reorder: by
+# default xdist queues the modules with the most tests first, which put the floor NeRF's few tests
+# (a 3-minute fixture) last.
 SLOW_FIRST = (
     "engine/test_stretch_fidelity.py",
     "engine/test_region_floor.py",
