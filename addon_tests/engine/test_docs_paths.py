@@ -49,7 +49,7 @@ TOP_FILES = {
 # Files of other projects the docs name in backquotes.
 EXTERNAL = {"blender_ext.py"}
 
-FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+FENCE = re.compile(r"^[ \t]*```.*?^[ \t]*```", re.S | re.M)  # also fences indented in a list item
 INLINE = re.compile(r"`([^`\n]+)`")
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 
@@ -118,12 +118,14 @@ def test_the_check_catches_made_up_paths():
         "Run `tools/bench/no_such_bench.py --help`, read `engine/service/no_such_module.py` and\n"
         "`worker_client.py`, see [the page](no_such_page.md).\n\n"
         "```sh\n.venv/bin/python tools/no_such_tool.py --out demo_out/x\n```\n"
+        "1. a step:\n\n   ```sh\n   .venv/bin/python tools/indented_missing.py\n   ```\n\n"
         "These exist: `tools/bench/nerf_train.py`, `addon/worker/client.py`, `fixtures/`, "
         "[cli](cli.md), `demo_out/frames/`, `engine/cli/<command>.py`.\n"
     )
     problems = missing_paths(text, page)
-    assert len(problems) == 5, problems
-    for name in ("no_such_bench.py", "no_such_module.py", "worker_client.py", "no_such_page.md", "no_such_tool.py"):
+    assert len(problems) == 6, problems
+    made_up = ("no_such_bench.py", "no_such_module.py", "worker_client.py", "no_such_page.md", "no_such_tool.py")
+    for name in made_up + ("indented_missing.py",):
         assert any(name in p for p in problems), (name, problems)
 
 
