@@ -539,7 +539,7 @@ CAPTURE_OPTIONS = (
 
 
 class NERFDEFORM_OT_capture_dataset(_CaptureProperties, bpy.types.Operator):
-    """Render a NeRF dataset of the selected objects (cameras around them, the scene's render engine) in the background; Esc cancels"""
+    """Render a NeRF dataset of the selected objects (cameras around them, the scene's render engine) in the background; Esc cancels"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.capture_dataset"
     bl_label = "Capture Dataset"

@@ -31,7 +31,7 @@ MIN_PHOTOS = 3  # what structure from motion needs at the very least
 
 
 class NERFDEFORM_OT_import_photos(WorkerOperator, bpy.types.Operator):
-    """Find the cameras of a folder of photos (structure from motion), train a NeRF on them in the background and load it (Esc cancels)"""
+    """Find the cameras of a folder of photos (structure from motion), train a NeRF on them in the background and load it (Esc cancels)"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.import_photos"
     bl_label = "Import Photos"

@@ -130,7 +130,7 @@ def _redraw_panels() -> None:
 
 
 class NERFDEFORM_OT_preview_training(bpy.types.Operator):
-    """Render a small preview of the NeRF being trained (or of the run's checkpoint) into the image "NeRF Training Preview\""""
+    """Render a small preview of the NeRF being trained (or of the run's checkpoint) into the image "NeRF Training Preview\""""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.preview_training"
     bl_label = "Preview"
