@@ -179,7 +179,8 @@ def violations(package_root: Path, addon_layers=ADDON_LAYERS) -> list[str]:
             if part and part not in PLUMBING + ("__main__",) and target in PLUMBING and (path, line) not in reported:
                 reported.add((path, line))
                 problems.append(
-                    f"{path}:{line}: stage module {module} imports {name} (stages never import engine/cli or engine/service)"
+                    f"{path}:{line}: stage module {module} imports {name} "
+                    "(stages never import engine/cli or engine/service)"
                 )
 
     addon = f"{pkg}.addon"

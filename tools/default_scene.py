@@ -83,7 +83,7 @@ KEY_LIGHT = (0.45, -0.65, 0.62)
 
 def _shade(normal) -> float:
     length = math.sqrt(sum(c * c for c in KEY_LIGHT))
-    lambert = max(0.0, sum(n * l / length for n, l in zip(normal, KEY_LIGHT)))
+    lambert = max(0.0, sum(n * light / length for n, light in zip(normal, KEY_LIGHT)))
     return 0.45 + 0.55 * lambert
 
 

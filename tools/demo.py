@@ -468,7 +468,8 @@ def author(config: dict) -> int:
     if config.get("rig") == "armature":
         rig = rig_handles_with_bones(bpy, handles["Middle"], handles["Tip"], frames)
         print(
-            f"    armature {rig.name}: bones {', '.join(b.name for b in rig.data.bones)} keyed; the handles follow them",
+            f"    armature {rig.name}: bones {', '.join(b.name for b in rig.data.bones)} keyed; "
+            "the handles follow them",
             flush=True,
         )
 

@@ -4,10 +4,11 @@ rendering the same cage poses from the same camera.
 The add-on side is what a user does: Load NeRF, Build Cage, Pin Selection, Add Handle, keyframes on
 the handle, `bpy.ops.render.render(animation=True)`. The command-line side gets, per frame, the cage
 pose the add-on's own path computes for that frame (deformation.deformed_cage after
-frame_set: the worker's solve, as a render runs it), the rest cage as CAGE.npz, and the camera as transforms.json written from the add-on's
-camera model (addon/data/camera.py), and runs `python -m blender_nerf_deform.engine render --cage
---deformed`. The poses are also checked against the keyframes themselves, so a render that ignored
-the frame's handle pose (or the handles altogether) could not pass.
+frame_set: the worker's solve, as a render runs it), the rest cage as CAGE.npz, and the camera as
+transforms.json written from the add-on's camera model (addon/data/camera.py), and runs
+`python -m blender_nerf_deform.engine render --cage --deformed`. The poses are also checked against
+the keyframes themselves, so a render that ignored the frame's handle pose (or the handles
+altogether) could not pass.
 """
 
 import json

@@ -48,7 +48,8 @@ def farm(tmp_path_factory, extension_zip, sphere_nerf):
     install = f"""
     assert bpy.ops.extensions.package_install_files(filepath={str(extension_zip)!r}, repo="user_default",
                                                     enable_on_install=True) == {{"FINISHED"}}
-    bpy.context.preferences.addons["bl_ext.user_default.blender_nerf_deform"].preferences.worker_python = {sys.executable!r}
+    prefs = bpy.context.preferences.addons["bl_ext.user_default.blender_nerf_deform"].preferences
+    prefs.worker_python = {sys.executable!r}
     bpy.ops.wm.save_userpref()
     """
     env = {**os.environ, "BLENDER_USER_RESOURCES": str(user)}

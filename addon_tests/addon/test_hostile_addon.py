@@ -32,7 +32,9 @@ outcomes = {}
 
 def parts(role):
     """Objects of a role that are in the scene (not deleted)."""
-    return sorted((o for o in bpy.data.objects if o.nerf_deform.role == role and o.users_collection), key=lambda o: o.name)
+    return sorted(
+        (o for o in bpy.data.objects if o.nerf_deform.role == role and o.users_collection), key=lambda o: o.name
+    )
 
 
 def first(role):
@@ -927,8 +929,14 @@ def test_errors_nobody_foresaw_end_in_one_message_naming_their_log(setup_blend, 
     _check(
         outcomes,
         {
-            "bake with a bug": rf"Bake Volume: unexpected error \(TypeError: a bug while writing frame 2\); its traceback is in {log}/",
-            "render with a bug": rf"NeRF Deform: .*frame 1: unexpected error \(ZeroDivisionError: division by zero\); its traceback is in {log}/",
+            "bake with a bug": (
+                r"Bake Volume: unexpected error \(TypeError: a bug while writing frame 2\); "
+                rf"its traceback is in {log}/"
+            ),
+            "render with a bug": (
+                r"NeRF Deform: .*frame 1: unexpected error \(ZeroDivisionError: division by zero\); "
+                rf"its traceback is in {log}/"
+            ),
         },
     )
     assert outcomes["bake left"][1] == [None, 1]  # no folder, no staged frame 1, the frame shown restored
@@ -1058,13 +1066,17 @@ def test_paths_ranges_and_stored_pointers_a_script_can_break(setup_blend, tmp_pa
             "load imposter": "ok",
             "bake a/b": "ok",
             "bake its imposter": "ok",
-            "huge region": r"\(1e\+06 x 1e\+06 x 1e\+06 NeRF units\) at resolution 10 has voxels of .* larger than the NeRF's",
+            "huge region": (
+                r"\(1e\+06 x 1e\+06 x 1e\+06 NeRF units\) at resolution 10 has voxels of .* larger than the NeRF's"
+            ),
             "mesh is an empty": r"NeRF object '[^']+': its extracted mesh is set to 'Empty', an empty, not a mesh",
             "cage is a cube": r"its cage is set to 'Cube', which holds no NeRF cage .* run Build Cage again",
             "rest matrix singular": damaged_handle.format("invertible"),
             "rest matrix NaN": "Bake Volume: frame 1: " + damaged_handle.format("finite"),
             "group renamed": r"names vertex group '[^']+', which '[^']+' does not have \(renamed or deleted\?\)",
-            "extract with a bug": r"Extract Mesh: unexpected error \(Odd: <its message could not be read>\); its traceback is in",
+            "extract with a bug": (
+                r"Extract Mesh: unexpected error \(Odd: <its message could not be read>\); its traceback is in"
+            ),
         },
     )
     assert outcomes["folders left"][1] == ["dangling", "pipe"]  # nothing in Blender's working directory

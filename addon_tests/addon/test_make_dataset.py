@@ -48,7 +48,8 @@ def _marker_scene(bpy):
 
 
 def _project(frame, meta):
-    """MARKER in continuous pixel coordinates (x right, y down; pixel i spans [i, i+1)), by docs/ARCHITECTURE.md's convention."""
+    """MARKER in continuous pixel coordinates (x right, y down; pixel i spans [i, i+1)), by
+    docs/ARCHITECTURE.md's convention."""
     c2w = np.array(frame["transform_matrix"], dtype=np.float64)
     x, y, z = (np.linalg.inv(c2w) @ np.array([*MARKER, 1.0]))[:3]
     # The ray of pixel (i, j) is ((i + 0.5 - cx) / fl_x, -(j + 0.5 - cy) / fl_y, -1):

@@ -1,4 +1,5 @@
-"""Deformers: affine region, ARAP (ours and libigl's) against linear blending, regions mapped from the surface, bad input."""
+"""Deformers: affine region, ARAP (ours and libigl's) against linear blending, regions mapped from the surface,
+bad input."""
 
 from __future__ import annotations
 

@@ -235,7 +235,11 @@ def test_the_embedding_module_is_pure_numpy():
 
     from fixtures import REPO
 
-    code = "import sys; sys.modules['torch'] = None; import blender_nerf_deform.engine.geometry.embedding, blender_nerf_deform.engine.geometry.mesh_io; print('ok')"
+    code = (
+        "import sys; sys.modules['torch'] = None; "
+        "import blender_nerf_deform.engine.geometry.embedding, blender_nerf_deform.engine.geometry.mesh_io; "
+        "print('ok')"
+    )
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
 

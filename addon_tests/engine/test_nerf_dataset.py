@@ -141,9 +141,7 @@ def test_bad_datasets_each_get_a_clear_error(tmp_path):
     (tmp_path / "8").mkdir()
     Image.new("RGBA", (8, 6)).save(tmp_path / "8" / "a.png")
     Image.new("RGBA", (8, 7)).save(tmp_path / "8" / "b.png")
-    msg = _expect(
-        tmp_path / "8", {**ok, "frames": [_frame("a.png"), _frame("b.png")]}, r"b\.png: image is 8x7.*same size"
-    )
+    _expect(tmp_path / "8", {**ok, "frames": [_frame("a.png"), _frame("b.png")]}, r"b\.png: image is 8x7.*same size")
     (tmp_path / "9").mkdir()
     (tmp_path / "9" / "a.png").write_bytes(b"not a png")
     _expect(tmp_path / "9", ok, r"a\.png: cannot read image")

@@ -1,4 +1,5 @@
-"""The hash-grid field: the fast encoding agrees with the obvious one, dense levels are trilinear, SH are orthonormal."""
+"""The hash-grid field: the fast encoding agrees with the obvious one, dense levels are trilinear, SH are
+orthonormal."""
 
 import math
 

@@ -158,16 +158,19 @@ def main() -> int:
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for r in rows:
         print(
-            f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.2%} | {r[4]:.1f} | {r[5]} | {r[6]:.3f} | {r[7]:.2%} | {r[8]:.1f} | "
+            f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.2%} | {r[4]:.1f} | "
+            f"{r[5]} | {r[6]:.3f} | {r[7]:.2%} | {r[8]:.1f} | "
             f"{r[9]} | {r[10]} | {'yes' if r[11] else 'NO'} |"
         )
     print(
-        f"\nhard: {sum(r[1] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[1] for r in rows)} in all), "
+        f"\nhard: {sum(r[1] > 0 for r in rows)} of {len(rows)} frames with inverted tets "
+        f"({sum(r[1] for r in rows)} in all), "
         f"surface residual up to {max(r[3] for r in rows):.2%}, solve median {np.median([r[4] for r in rows]):.1f} ms, "
         f"max {max(r[4] for r in rows):.1f} ms"
     )
     print(
-        f"surface ARAP: {sum(r[5] > 0 for r in rows)} of {len(rows)} frames with inverted tets ({sum(r[5] for r in rows)} in all), "
+        f"surface ARAP: {sum(r[5] > 0 for r in rows)} of {len(rows)} frames with inverted tets "
+        f"({sum(r[5] for r in rows)} in all), "
         f"surface residual up to {max(r[7] for r in rows):.2%}, solve median {np.median([r[8] for r in rows]):.1f} ms, "
         f"max {max(r[8] for r in rows):.1f} ms"
     )

@@ -112,7 +112,7 @@ def main() -> int:
             order = ("plain", "bent") if (rep + k) % 2 == 0 else ("bent", "plain")
             for mode in order:
                 kw = bent_kw if mode == "bent" else {}
-                out, s = timed(lambda: render_image(model, cam, background=(1.0, 1.0, 1.0), **kw))
+                out, s = timed(lambda cam=cam, kw=kw: render_image(model, cam, background=(1.0, 1.0, 1.0), **kw))
                 (tb if mode == "bent" else tp).append(s)
                 if rep == 0:
                     spr[mode].append(out["density_samples_per_ray"])

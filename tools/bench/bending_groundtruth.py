@@ -20,7 +20,8 @@ What it does, end to end, as a user would:
 3. For each known smooth map of 3D points (MAPS below: non-uniform scale, bend,
    twist, moving the head, and the strong stretches and compressions of issue 18:
    widening 1.3x in x and y, pulling the ends apart so that a band of the bar
-   stretches to 2.7x its height (3.55x at its middle), squashing to 0.5x in x), moves the meshes' vertices by the map and renders the
+   stretches to 2.7x its height (3.55x at its middle), squashing to 0.5x in x),
+   moves the meshes' vertices by the map and renders the
    SAME test cameras again with `make_dataset` (same seed and count, so the
    same random test cameras; checked).
 4. Trains the NeRF on the rest-pose training set (`engine train`), extracts a
@@ -136,7 +137,8 @@ HEAD_MOVE = np.array([0.35, -0.10, 0.10])
 
 
 def move_head_map(p: np.ndarray) -> np.ndarray:
-    """Translate the head by HEAD_MOVE; weight = smoothstep across the middle of the gap (0 on the bar, 1 on the head)."""
+    """Translate the head by HEAD_MOVE; weight = smoothstep across the middle of the gap (0 on the bar, 1 on the
+    head)."""
     a, b = GAP_FALLOFF
     s = np.clip((p[:, 2] - a) / (b - a), 0.0, 1.0)
     w = s * s * (3.0 - 2.0 * s)

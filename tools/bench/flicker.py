@@ -14,7 +14,8 @@ from demo.blend opened in memory (nothing in demo_out is written):
   orbit  the rest pose (the handles held at their frame-1 keyframes), the camera turned about the
          vertical axis through the demo's camera target by --orbit-degrees over the same frames
          (keyed every frame on the circle, eased in and out by a smoothstep): an undeformed
-         animation whose picture changes as smoothly as the camera moves, the reference for what "no flicker" looks like in this renderer.
+         animation whose picture changes as smoothly as the camera moves, the reference for what
+         "no flicker" looks like in this renderer.
 
 Figures per animation, frames composited on white, in 8-bit units (0-255):
   d_t      mean |I_t - I_{t-1}| over the pixels: how much consecutive frames differ;

@@ -198,7 +198,6 @@ def bench_scene(name, scene, paths, reps, save: Path | None, no_step_refine: boo
                         posed._pose = None  # a new pose every frame: posing counted
                         t = time.perf_counter()
                         deformed, solve_s = solve()
-                        t1 = time.perf_counter()
                         posed.bend.set_deformed(deformed)
                         posed._pose = deformed.copy()
                         if no_step_refine:  # CageBend's finer step for compressed poses, off (to measure it)
@@ -362,7 +361,8 @@ def main(argv=None) -> int:
         extra = ""
         if r["frame"] == "bent":
             extra = (
-                f"  pose {r['pose_seconds']:.3f} s (ARAP {r['arap_solve_seconds']:.3f})  with pose {r['seconds_with_pose']:.2f} s"
+                f"  pose {r['pose_seconds']:.3f} s (ARAP {r['arap_solve_seconds']:.3f})"
+                f"  with pose {r['seconds_with_pose']:.2f} s"
                 f"  ratio {r['ratio_bent_over_undeformed']:.3f} / with pose {r['ratio_with_pose']:.3f}"
             )
         if "psnr_vs_legacy_rgba" in r:

@@ -58,7 +58,8 @@ def main() -> int:
     handle = np.flatnonzero(V[:, axis] > hi[axis] - 0.1 * span)
     centre = V[handle].mean(0)
     print(
-        f"machine: {machine()}; cage {name}: {len(V)} vertices, {len(T)} tets; handle {len(handle)}, pinned {len(pin)} vertices"
+        f"machine: {machine()}; cage {name}: {len(V)} vertices, {len(T)} tets; "
+        f"handle {len(handle)}, pinned {len(pin)} vertices"
     )
 
     def transform(f):
@@ -92,10 +93,12 @@ def main() -> int:
         print(
             f"{backend} {energy}: precompute {pre:.2f} s; per-frame step ({args.iters} iteration(s), warm start) "
             f"median {np.median(per) * 1e3:.0f} ms, max {per.max() * 1e3:.0f} ms over {args.frames} frames "
-            f"(last frame: elements energy {judge.energy(stepped):.5g}, edge distortion {edge_length_distortion(V, stepped, T):.4f}); "
+            f"(last frame: elements energy {judge.energy(stepped):.5g}, "
+            f"edge distortion {edge_length_distortion(V, stepped, T):.4f}); "
             f"converged solve of the last frame: {conv.iterations} iterations, {conv.seconds:.2f} s "
             f"({conv.seconds / conv.iterations * 1e3:.0f} ms/iteration), converged={conv.converged}, "
-            f"elements energy {judge.energy(conv.vertices):.5g}, edge distortion {edge_length_distortion(V, conv.vertices, T):.4f}, {inv.summary()}",
+            f"elements energy {judge.energy(conv.vertices):.5g}, "
+            f"edge distortion {edge_length_distortion(V, conv.vertices, T):.4f}, {inv.summary()}",
             flush=True,
         )
     return 0

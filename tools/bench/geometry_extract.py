@@ -61,7 +61,8 @@ def main() -> int:
     total = time.perf_counter() - t0
     ct = cage.timings
     print(
-        f"cage: total {total:.1f} s (closed-mesh check + envelope {ct['envelope_s']:.1f} s, fTetWild {ct['tetrahedralize_s']:.1f} s, "
+        f"cage: total {total:.1f} s (closed-mesh check + envelope {ct['envelope_s']:.1f} s, "
+        f"fTetWild {ct['tetrahedralize_s']:.1f} s, "
         f"clearance check {ct['clearance_check_s']:.2f} s): {len(cage.tets)} tets, {len(cage.vertices)} vertices, "
         f"margin {cage.margin:.4f}, clearance {cage.clearance:.4f}"
     )

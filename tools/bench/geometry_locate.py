@@ -48,7 +48,8 @@ def main() -> int:
         t0 = time.perf_counter()
         cage = build_cage(mesh.vertices, mesh.faces, margin=0.05, target_tets=args.tets)
         print(
-            f"cage: {len(cage.tets)} tets, {len(cage.vertices)} vertices, built in {time.perf_counter() - t0:.1f}s {cage.timings}"
+            f"cage: {len(cage.tets)} tets, {len(cage.vertices)} vertices, "
+            f"built in {time.perf_counter() - t0:.1f}s {cage.timings}"
         )
         V, T = cage.vertices, cage.tets
         if args.save_cage:
@@ -114,7 +115,8 @@ def main() -> int:
             boundary += all(abs(x) < tol for x in m)
         rows.append((name, t, len(differ), boundary))
     print(
-        f"machine: {machine()}; torch threads {torch.get_num_threads()}; {len(T)} tets; {args.points} points; inside {np.mean(ref >= 0):.1%}"
+        f"machine: {machine()}; torch threads {torch.get_num_threads()}; {len(T)} tets; {args.points} points; "
+        f"inside {np.mean(ref >= 0):.1%}"
     )
     print(f"igl AABB+in_element: {t_igl * 1e3:.0f} ms  ({args.points / t_igl / 1e6:.2f} M points/s)")
     for name, t, nd, nb in rows:

@@ -151,10 +151,14 @@ def main() -> int:
         for name in ("old", "new") if r % 2 == 0 else ("new", "old"):
             fwd, bwd = kernels[name]
             times[f"{name} forward"].append(
-                seconds(lambda: fwd(density, table, arrs.res, arrs.dense, arrs.size, arrs.off, outs[name]))
+                seconds(
+                    lambda fwd=fwd, name=name: fwd(
+                        density, table, arrs.res, arrs.dense, arrs.size, arrs.off, outs[name]
+                    )
+                )
             )
             times[f"{name} backward"].append(
-                seconds(lambda: bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off, *grads[name]))
+                seconds(lambda bwd=bwd, name=name: bwd(x, g, arrs.res, arrs.dense, arrs.size, arrs.off, *grads[name]))
             )
     for r in range(args.repeats):
         for name in ("old", "new") if r % 2 == 0 else ("new", "old"):

@@ -151,9 +151,9 @@ def main() -> int:
     rows = []
     for name, levels, feats, log2t, mode in ladder:
         v = Variant(name, levels, feats, log2t, mode)
-        fwd = timed(lambda: v.forward(pts, dirs), args.repeat)
+        fwd = timed(lambda v=v: v.forward(pts, dirs), args.repeat)
         stp = timed(
-            lambda: v.train_step(pts, dirs, target), max(2, args.repeat // 2) if mode == "naive" else args.repeat
+            lambda v=v: v.train_step(pts, dirs, target), max(2, args.repeat // 2) if mode == "naive" else args.repeat
         )
         rows.append(
             {

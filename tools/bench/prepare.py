@@ -79,7 +79,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="bench_prepare.") as tmp:
         photos = Path(tmp) / "photos"
         photos.mkdir()
-        for stem, p in files.items():
+        for _stem, p in files.items():
             shutil.copy(p, photos / p.name)
         t0 = time.perf_counter()
         summary = prepare(photos, Path(tmp) / "out", matcher=args.matcher, max_size=args.max_size)

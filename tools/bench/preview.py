@@ -20,8 +20,8 @@ Each way is measured twice:
   rate the preview sustains when every pose must be shown.
 - streamed: changes arrive at a fixed rate (--drag-hz for moves, the scene's fps for playback) and
   answers are collected at the cadence of the add-on's drain timer (its own return value: 50 ms while
-  busy), as in Blender's UI, for --seconds (the path repeating). Only the newest waiting pose is solved (AsyncSolver), so updates/s =
-  shape keys written per second while the input runs.
+  busy), as in Blender's UI, for --seconds (the path repeating). Only the newest waiting pose is
+  solved (AsyncSolver), so updates/s = shape keys written per second while the input runs.
 
 Also printed: the worker's own solve time (the "solve" op's solve_s), the main thread's time per
 change (depsgraph update + the add-on's handler, which builds and sends the request) and per applied
@@ -350,7 +350,8 @@ def bench(bpy, args) -> None:
     hello = jobs.worker(bpy.context).ensure_started()
     pinned = surface.vertex_groups.get(PIN_GROUP) is not None
     print(
-        f"NeRF '{nerf.name}': surface {len(surface.data.vertices)} vertices, cage {len(rest)} vertices / {len(tets)} tets, "
+        f"NeRF '{nerf.name}': surface {len(surface.data.vertices)} vertices, "
+        f"cage {len(rest)} vertices / {len(tets)} tets, "
         f"{len(handles_of(nerf))} handles{' + pinned region' if pinned else ''}, mode {s.deformation_mode}; "
         f"moving '{handle.name}' ({args.count} poses, up to {0.1 * size:.3g} NeRF units)"
     )
@@ -417,18 +418,22 @@ def bench(bpy, args) -> None:
         a, st = results[f"{kind} awaited"], results[f"{kind} streamed"]
         print(f"{label}:")
         print(
-            f"  awaited:  {a['rate']:.1f} updates/s over {a['n']} changes; latency change → shape key {_ms(a['latency'])}"
+            f"  awaited:  {a['rate']:.1f} updates/s over {a['n']} changes; "
+            f"latency change → shape key {_ms(a['latency'])}"
         )
         print(
-            f"            worker solve {_ms(a['solve'])}; main thread per change {_ms(a['handler'])}, per applied answer {_ms(a['apply'])}"
+            f"            worker solve {_ms(a['solve'])}; main thread per change {_ms(a['handler'])}, "
+            f"per applied answer {_ms(a['apply'])}"
         )
         print(
             f"  streamed: {st['rate']:.1f} updates/s with changes at {st['input_hz']:.0f}/s "
-            f"({st['shown']} of {st['n']} poses shown, newest wins; drained every {1000 * worker_client._DRAIN_BUSY_S:.0f} ms)"
+            f"({st['shown']} of {st['n']} poses shown, newest wins; "
+            f"drained every {1000 * worker_client._DRAIN_BUSY_S:.0f} ms)"
         )
     a = results["frames awaited"]
     print(
-        f"SUMMARY preview updates/s: playback awaited {a['rate']:.1f}, streamed {results['frames streamed']['rate']:.1f}; "
+        f"SUMMARY preview updates/s: playback awaited {a['rate']:.1f}, "
+        f"streamed {results['frames streamed']['rate']:.1f}; "
         f"moves awaited {results['moves awaited']['rate']:.1f}, streamed {results['moves streamed']['rate']:.1f}; "
         f"solve latency {_ms(a['latency'])}"
     )

@@ -154,7 +154,8 @@ def main(argv=None) -> int:
         mean = sum(steps) / len(steps)
         psnr = eval_psnr(work / f"{name}_{last}" / "nerf.ckpt", data)
         print(
-            f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  mean {mean:8.1f} ({mean / base_mean:6.1%} of {base})"
+            f"{name:7s} steps {' '.join(f'{n:6d}' for n in steps)}  "
+            f"mean {mean:8.1f} ({mean / base_mean:6.1%} of {base})"
             f"  batch PSNR {summaries[-1].get('psnr', float('nan')):.2f} dB  eval PSNR {psnr:.2f} dB (round {last + 1})"
         )
     return 0

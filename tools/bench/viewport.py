@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Viewport (Rendered shading) responsiveness, and the cost of a second NeRF in a frame.
 
-    .venv/bin/python tools/bench/viewport.py                                   # demo_out/demo.blend (what `make demo` writes)
+    .venv/bin/python tools/bench/viewport.py        # demo_out/demo.blend (what `make demo` writes)
     .venv/bin/python tools/bench/viewport.py --blend shot.blend --width 1280 --height 720
 
 Runs the add-on in the bpy module with its real worker (the Python that finds torch: the
@@ -149,7 +149,7 @@ def bench(bpy, args) -> None:
         t0 = time.perf_counter()
         move(k + 1)
         render = viewport.render
-        _pump_until(client, lambda: render.state != "running")
+        _pump_until(client, lambda render=render: render.state != "running")
         if render.state != "finished":
             raise SystemExit(f"the render {render.state}: {render.error}")
         mine = [(t, d) for t, r, d in shown.events if r is render]
@@ -157,7 +157,8 @@ def bench(bpy, args) -> None:
         full.append(mine[-1][0] - t0)
         assert [d for _t, d in mine] == list(render.downscales)
     print(
-        f"pose change -> first image (1/8, {view.width // 8}x{view.height // 8}): median {1e3 * statistics.median(coarse):.0f} ms "
+        f"pose change -> first image (1/8, {view.width // 8}x{view.height // 8}): "
+        f"median {1e3 * statistics.median(coarse):.0f} ms "
         f"({', '.join(f'{1e3 * c:.0f}' for c in coarse)})"
     )
     print(
@@ -190,7 +191,8 @@ def bench(bpy, args) -> None:
     lags = [t - started_at[id(r)] for t, r, _d in images if id(r) in started_at]
     by_size = {d: sum(1 for *_x, dd in images if dd == d) for d in sorted({d for *_x, d in images}, reverse=True)}
     print(
-        f"drag at {args.drag_hz:g} Hz for {elapsed:.1f} s ({len(changes)} pose changes): {len(images) / elapsed:.1f} images/s shown "
+        f"drag at {args.drag_hz:g} Hz for {elapsed:.1f} s ({len(changes)} pose changes): "
+        f"{len(images) / elapsed:.1f} images/s shown "
         f"(by downscale {by_size}), {sum(1 for *_x, d in images if d == 8) / elapsed:.1f} coarse/s; lag median "
         f"{1e3 * statistics.median(lags):.0f} ms"
         if lags

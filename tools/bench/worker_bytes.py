@@ -80,7 +80,8 @@ def main(argv=None) -> int:
         handle = next((h for h in handles if h.name == args.handle), handles[0]) if args.handle else handles[0]
         print(
             f"scene {args.blend}: NeRF {nerf.name}, mode {nerf.nerf_deform.deformation_mode}, "
-            f"surface {len(nerf.nerf_deform.surface.data.vertices)} vertices, cage {len(nerf.nerf_deform.cage.data.vertices)} vertices"
+            f"surface {len(nerf.nerf_deform.surface.data.vertices)} vertices, "
+            f"cage {len(nerf.nerf_deform.cage.data.vertices)} vertices"
         )
 
         frames = []
@@ -97,7 +98,8 @@ def main(argv=None) -> int:
             frames.append(sum(n for _op, n in log[: last + 1]))
             print(
                 f"F12 frame {scene.frame_current}: {frames[-1]:,} bytes in the render's {last + 1} messages "
-                f"({', '.join(op for op, _ in log[: last + 1])}); after it {sum(n for _op, n in log[last + 1 :]):,} bytes "
+                f"({', '.join(op for op, _ in log[: last + 1])}); "
+                f"after it {sum(n for _op, n in log[last + 1 :]):,} bytes "
                 f"({', '.join(op for op, _ in log[last + 1 :]) or 'none'})"
             )
 
