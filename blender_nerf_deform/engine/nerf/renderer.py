@@ -273,6 +273,16 @@ def _segment_sum(values: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> to
     return out.index_add(0, ray_idx, values)
 
 
+def _composite_samples(sigma, rgb, t, dt, ray_idx, n_rays: int, exclusive_transmittance):
+    """(color (n, 3), alpha, depth, w) of a training batch's samples, sorted by ray, with autograd.
+    `exclusive_transmittance(tau)`: exp(-sum of tau over each sample's earlier samples on its ray); the
+    kernel path and the device path find each ray's first sample differently."""
+    tau = sigma * dt
+    w = exclusive_transmittance(tau) * (1.0 - torch.exp(-tau))
+    color = _segment_sum(w[:, None] * rgb, ray_idx, n_rays)
+    return color, _segment_sum(w, ray_idx, n_rays), _segment_sum(w * t, ray_idx, n_rays), w
+
+
 def _density_pass(model, pts, keep_encoding=False, chunk=1 << 18):
     """Density and geometry features of all samples (no grad); with keep_encoding also the encodings."""
     sig, geo, encs, xs = [], [], [], []
@@ -409,12 +419,9 @@ def _render_chunk(
     if keep is not None:
         sigma = sigma * keep
     rgb = model.color(geo, sdirs, None if appearance is None else appearance[ray_idx])
-    tau = sigma * dt
-    trans = _exclusive_transmittance(tau, ray_idx, n)
-    w = trans * (1.0 - torch.exp(-tau))
-    color = _segment_sum(w[:, None] * rgb, ray_idx, n)
-    alpha = _segment_sum(w, ray_idx, n)
-    depth = _segment_sum(w * t, ray_idx, n)
+    color, alpha, depth, w = _composite_samples(
+        sigma, rgb, t, dt, ray_idx, n, lambda tau: _exclusive_transmittance(tau, ray_idx, n)
+    )
     if samples_out is not None:
         samples_out.append((ray_idx, t, dt, w))
     return color, alpha, depth, n_density, ray_idx.numel()
@@ -426,7 +433,7 @@ def _render_chunk(
 FIELD_BLOCK = 8192
 
 
-def _blocked_density(model, pts):
+def blocked_density(model, pts):
     """Density and geometry features of samples (no grad), encoded and evaluated FIELD_BLOCK at a time."""
     n = pts.shape[0]
     if n <= FIELD_BLOCK:
@@ -440,7 +447,7 @@ def _blocked_density(model, pts):
     return sigma, geo
 
 
-def _blocked_color(model, geo, dirs, codes=None):
+def blocked_color(model, geo, dirs, codes=None):
     n = geo.shape[0]
     if n <= FIELD_BLOCK:
         return model.color(geo, dirs, codes)
@@ -490,7 +497,7 @@ def _render_chunk_frame(
                 if kept.numel() < keep.numel():
                     ray_idx, t, dt, pts, sdirs = ray_idx[kept], t[kept], dt[kept], pts[kept], sdirs[kept]
                     scale = None if scale is None else scale[kept]
-            sigma, geo = _blocked_density(model, pts)
+            sigma, geo = blocked_density(model, pts)
             n_density += ray_idx.numel()
             if scale is not None:
                 sigma = sigma * scale
@@ -504,7 +511,7 @@ def _render_chunk_frame(
                 transmittance *= torch.exp(-_segment_sum(tau.double(), ray_idx, n))
             if sel.numel():
                 r_s = ray_idx[sel]
-                rgb = _blocked_color(model, geo[sel], sdirs[sel], None if appearance is None else appearance[r_s])
+                rgb = blocked_color(model, geo[sel], sdirs[sel], None if appearance is None else appearance[r_s])
                 if kernels:
                     composite_kernels.accumulate(sel, ray_idx, w, t, rgb, color, alpha, depth)
                 else:
@@ -638,7 +645,7 @@ def _render_chunk_device(
                 # The round's compositing in one kernel (weights, pixels, the transmittance carried on).
                 from . import composite_triton
 
-                rgb = _blocked_color(model, geo, sdirs, codes)
+                rgb = blocked_color(model, geo, sdirs, codes)
                 n_color = n_color + composite_triton.composite_round(
                     sigma, dt, t, rgb, first, counts, alive, transmittance, color, alpha, depth, weight_threshold
                 )
@@ -654,7 +661,7 @@ def _render_chunk_device(
                 else:
                     w = trans * (1.0 - torch.exp(-tau))
                     lit = w > weight_threshold
-                    rgb = _blocked_color(model, geo, sdirs, codes)
+                    rgb = blocked_color(model, geo, sdirs, codes)
                     w = torch.where(lit, w, 0.0)
                     color.index_add_(0, ray_idx, w[:, None] * rgb)
                     alpha.index_add_(0, ray_idx, w)
@@ -692,12 +699,9 @@ def _render_chunk_device(
 
         color, alpha, depth, w = composite_triton.CompositeTrain.apply(sigma, rgb, dt, t, first, counts, alive, n)
     else:
-        tau = sigma * dt
-        trans = _segment_exclusive(tau, row, first)
-        w = trans * (1.0 - torch.exp(-tau))
-        color = _segment_sum(w[:, None] * rgb, ray_idx, n)
-        alpha = _segment_sum(w, ray_idx, n)
-        depth = _segment_sum(w * t, ray_idx, n)
+        color, alpha, depth, w = _composite_samples(
+            sigma, rgb, t, dt, ray_idx, n, lambda tau: _segment_exclusive(tau, row, first)
+        )
     if samples_out is not None:
         samples_out.append((ray_idx, t, dt, w))
     return color, alpha, depth, n_density, seen.sum()
