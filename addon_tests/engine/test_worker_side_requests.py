@@ -97,7 +97,7 @@ def test_a_preview_is_answered_while_the_training_runs_and_leaves_it_undisturbed
     assert rgba.shape == (30, 40, 4) and np.isfinite(rgba).all()
     assert rgba[..., 3].std() > 0.05 and rgba[..., :3].std() > 0.02  # the sphere's disc, not a constant image
     bad, _ = worker.until(3)
-    assert bad["type"] == "error" and bad["kind"] == "input" and "`camera` must be a camera" in bad["message"]
+    assert bad["type"] == "error" and bad["kind"] == "input" and "camera: expected a camera" in bad["message"]
     trained, _ = worker.until(1)
     assert trained["type"] == "result" and trained["result"]["steps"] == steps, trained
     # Both previews of the running training came back before it ended; the others waited for it.
@@ -105,7 +105,7 @@ def test_a_preview_is_answered_while_the_training_runs_and_leaves_it_undisturbed
     other, _ = worker.until(4)
     assert other["type"] == "error" and other["kind"] == "input" and "does not exist yet" in other["message"]
     missing, _ = worker.until(5)
-    assert missing["kind"] == "input" and "needs `checkpoint`" in missing["message"]
+    assert missing["kind"] == "input" and "checkpoint: missing" in missing["message"]
     assert _answered(worker.log, 1) < _answered(worker.log, 4)
 
     # After the training: the preview renders the checkpoint file, from the same camera.
@@ -128,30 +128,34 @@ def test_a_preview_is_answered_while_the_training_runs_and_leaves_it_undisturbed
 def test_hostile_preview_and_prepare_params_are_input_errors(worker, tmp_path):
     photos = tmp_path / "photos"
     cases = [
-        ("training_preview", {}, "needs `checkpoint`"),
-        ("training_preview", {"checkpoint": 7, "camera": None}, "needs `checkpoint`"),
-        ("training_preview", {"checkpoint": str(tmp_path / "nerf.ckpt")}, "needs `camera`"),
-        ("training_preview", {"checkpoint": str(tmp_path / "nerf.ckpt"), "camera": None}, "does not exist yet"),
-        ("prepare", {}, "prepare needs `images`"),
-        ("prepare", {"images": ["a"], "out": "x"}, "prepare needs `images`"),
-        ("prepare", {"images": str(photos), "out": None}, "prepare needs `out`"),
-        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "matcher": 3}, "`matcher` must be one of"),
+        ("training_preview", {}, "training_preview request: checkpoint: missing"),
+        ("training_preview", {"checkpoint": 7, "camera": None}, "checkpoint: expected the path of"),
+        ("training_preview", {"checkpoint": str(tmp_path / "nerf.ckpt")}, "camera: missing"),
+        (
+            "training_preview",
+            {"checkpoint": str(tmp_path / "nerf.ckpt"), "camera": None, "size": [8, 8]},
+            "does not exist yet",
+        ),
+        ("prepare", {}, "prepare request: images: missing"),
+        ("prepare", {"images": ["a"], "out": "x"}, "images: expected a folder"),
+        ("prepare", {"images": str(photos), "out": None}, "out: expected a dataset folder"),
+        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "matcher": 3}, "matcher: expected one of"),
         (
             "prepare",
             {"images": str(photos), "out": str(tmp_path / "d"), "max_size": "big"},
-            "`max_size` must be an integer",
+            "max_size: expected an integer",
         ),
-        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "seed": True}, "`seed` must be an integer"),
+        ("prepare", {"images": str(photos), "out": str(tmp_path / "d"), "seed": True}, "seed: expected an integer"),
         ("prepare", {"images": str(photos), "out": str(tmp_path / "d")}, "no such folder"),
         (
             "train",
             {"data": str(photos), "out": str(tmp_path / "r"), "downscale": "2"},
-            "`downscale` must be a whole number",
+            "downscale: expected a whole number",
         ),
         (
             "train",
             {"data": str(photos), "out": str(tmp_path / "r"), "downscale": 0},
-            "`downscale` must be a whole number",
+            "downscale: expected a whole number",
         ),
     ]
     for k, (op, params, message) in enumerate(cases):
@@ -171,10 +175,10 @@ def test_hostile_cage_refinement_is_an_input_error_before_any_tetrahedralizing(w
     flags = np.ones(len(v), dtype=np.uint8)
     cases = [
         ({}, {"refine": flags[:-1]}, "refinement flags for a mesh of"),
-        ({"refine_edge": float("nan")}, {"refine": flags}, "refine_edge must be a positive length"),
-        ({"refine_edge": -0.1}, {"refine": flags}, "refine_edge must be a positive length"),
-        ({"refine_edge": "0.1"}, {"refine": flags}, "refine_edge must be a positive length"),
-        ({"refine_edge": True}, {"refine": flags}, "refine_edge must be a positive length"),
+        ({"refine_edge": float("nan")}, {"refine": flags}, "refine_edge: expected a positive length"),
+        ({"refine_edge": -0.1}, {"refine": flags}, "refine_edge: expected a positive length"),
+        ({"refine_edge": "0.1"}, {"refine": flags}, "refine_edge: expected a positive length"),
+        ({"refine_edge": True}, {"refine": flags}, "refine_edge: expected a positive length"),
     ]
     for k, (params, extra, message) in enumerate(cases):
         worker.request(k, "cage", params, {**mesh, **extra})
@@ -191,14 +195,15 @@ def test_hostile_preview_cameras_of_a_checkpoint_are_input_errors(worker, sphere
     pose[2, 3] = 3.0
     good = {"camera_to_world": pose.tolist(), "fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0, "width": 32, "height": 24}
     cases = [
-        ({"camera": None}, "needs `size`"),
-        ({"camera": None, "size": [32]}, "needs `size`"),
-        ({"camera": None, "size": ["32", 24]}, "needs `size`"),
+        ({"camera": None}, "size: expected [width, height]"),
+        ({"camera": None, "size": [32]}, "size: expected [width, height]"),
+        ({"camera": None, "size": ["32", 24]}, "size: expected [width, height]"),
         ({"camera": None, "size": [5000, 24]}, "at most 1024x1024"),
-        ({"camera": {**good, "fx": "wide"}}, "bad camera"),
-        ({"camera": {k: v for k, v in good.items() if k != "width"}}, "bad camera"),
-        ({"camera": {**good, "fx": float("nan")}}, "not finite"),
-        ({"camera": {**good, "height": 0}}, "at most 1024x1024"),
+        ({"camera": {**good, "fx": "wide"}}, "camera.fx: expected a finite non-zero number"),
+        ({"camera": {k: v for k, v in good.items() if k != "width"}}, "camera.width: missing"),
+        ({"camera": {**good, "fx": float("nan")}}, "camera.fx: expected a finite non-zero number"),
+        ({"camera": {**good, "height": 0}}, "camera.height: expected a whole number of pixels >= 1"),
+        ({"camera": {**good, "height": 2000}}, "at most 1024x1024"),
     ]
     for k, (params, message) in enumerate(cases):
         worker.request(k, "training_preview", {"checkpoint": ckpt, **params})

@@ -163,24 +163,28 @@ def refine_cage(
     return b.vertices, b.tets
 
 
-def refine_around(
-    vertices: np.ndarray, tets: np.ndarray, points: np.ndarray, margin: float, max_edge: float | None = None
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """`refine_cage` in the box of `points` (the surface vertices the user will stretch) widened by
-    the cage's `margin` and the edge length, so the tets wrapping them are refined too. `max_edge`
-    None: half the cage's median tet edge (a smooth stretch across a band needs a few tets across it;
-    half the as-built size brought the ground-truth stretch to the exact map's PSNR, BENCHMARKS.md).
-    Returns (vertices, tets, the edge length used, the box)."""
+def selection_box(points: np.ndarray, margin: float, max_edge: float) -> np.ndarray:
+    """The (2, 3) box of `points` (the surface vertices the user will stretch) widened by the cage's
+    `margin` and the edge length, so the tets wrapping them are refined too."""
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(P) == 0:
         raise EngineError("cage refinement around a selection: no vertices are selected")
     if not np.isfinite(P).all():
         raise EngineError("cage refinement around a selection: the selected vertices are not finite")
+    pad = float(margin) + float(max_edge)
+    return np.stack([P.min(axis=0) - pad, P.max(axis=0) + pad])
+
+
+def refine_around(
+    vertices: np.ndarray, tets: np.ndarray, points: np.ndarray, margin: float, max_edge: float | None = None
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """`refine_cage` in the `selection_box` of `points`. `max_edge` None: half the cage's median tet
+    edge (a smooth stretch across a band needs a few tets across it; half the as-built size brings a
+    stretch to the exact map's quality). Returns (vertices, tets, the edge length used, the box)."""
     V, T = np.asarray(vertices, dtype=np.float64), np.asarray(tets, dtype=np.int64)
     if max_edge is None:
         max_edge = 0.5 * median_edge(V, T)
-    pad = float(margin) + float(max_edge)
-    box = np.stack([P.min(axis=0) - pad, P.max(axis=0) + pad])
+    box = selection_box(points, margin, max_edge)
     V2, T2 = refine_cage(V, T, float(max_edge), box)
     return V2, T2, float(max_edge), box
 
@@ -203,9 +207,8 @@ def extend_vertex_labels(labels: np.ndarray, tets: np.ndarray, n_vertices: int) 
 
 
 # Where two regions meet: pad around each shared cage vertex and the longest edge left there, in
-# median edges of the cage as built. Measured on make-demo cages (BENCHMARKS.md, issue 30): the
-# handles' surface within 0.61-0.90 % of their size (2.2-3.0 % as built) at 2-2.4x the tets; edges of
-# 0.7 left one cage at 0.92 %, boxes of 0.7 another at 1.08 %.
+# median edges of the cage as built (chosen on the demo's cages: the smallest that bring the handles'
+# surface close to its targets; larger ones left it visibly off).
 SEPARATION_PAD = 1.0
 SEPARATION_EDGE = 0.6
 
@@ -326,8 +329,8 @@ def separate_regions(
 ) -> Separation | None:
     """Refine the cage around the cage vertices that two regions lean on, so that each region's
     surface can follow its own transform: a vertex shared by two handles' tets must serve both, and
-    a fold-free solve then leaves the surface off its targets (issue 30: 2-3 % of the region's size
-    on make demo's coarse cages). Tets whose centroid lies within `pad` median edges of a shared
+    a fold-free solve then leaves the surface off its targets (by a few percent of the region's size
+    on coarse cages). Tets whose centroid lies within `pad` median edges of a shared
     vertex are bisected down to `edge` median edges. Each pair of regions is tried on its own first:
     a pair closer than the refined tets would stay shared however many tets it got, so it is left
     as built (`too_close`) and does not cost the others their refinement. None when no cage vertex
