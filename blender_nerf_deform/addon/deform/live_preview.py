@@ -94,7 +94,7 @@ def _solve_in_background(nerf: bpy.types.Object, depsgraph) -> None:
             hide_deformed(settings(nerf).surface)
         return
     pose, shared = request
-    state = repr((pose, sorted((slot, key) for slot, (key, _load) in shared.items()))).encode()
+    state = repr((pose.params(), sorted((slot, key) for slot, (key, _load) in shared.items()))).encode()
     if _last_pose.get(nerf.name) == state:
         return
     _last_pose[nerf.name] = state

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...engine.service.protocol import content_key
+from ...engine.service.requests import CagePose, DeformMode, HandlesPose, Pose, RestPose, SolveAnswer, SolveRequest
 from ..data.cage_store import (
     CageDataError,
     cage_pins,
@@ -23,11 +24,11 @@ from ..data.properties import PIN_GROUP, PlacementError, handles_of
 from .handles import handle_target, region_vertices
 
 
-def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
-    """`nerf`'s handles at this frame as (pose params, shared content), or None without a handle.
+def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[HandlesPose, dict] | None:
+    """`nerf`'s handles at this frame as (pose, shared content), or None without a handle.
     `to_nerf`: the NeRF's evaluated world -> NeRF frame Matrix when the caller has it.
 
-    The pose params (mode, one 4x4 transform per handle in the NeRF's frame, their names) are
+    The pose (mode, one 4x4 transform per handle in the NeRF's frame, their names) is
     all that changes from frame to frame; the cage, the surface's embedding, the handles'
     regions and the cage's pins at the cut travel as shared content, by key (sent to a worker once).
     """
@@ -37,9 +38,10 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
     if not handles or surface is None or s.cage is None:
         return None
     if surface.type != "MESH":  # a script set it: the handles' vertex groups are on no mesh
+        article = "an" if surface.type[0] in "AEIOU" else "a"
         raise CageDataError(
             f"NeRF object '{nerf.name}': its extracted mesh is set to '{surface.name}', "
-            f"{'an' if surface.type[0] in 'AEIOU' else 'a'} {surface.type.lower()}, not a mesh; set it back to the mesh (or Extract Mesh and "
+            f"{article} {surface.type.lower()}, not a mesh; set it back to the mesh (or Extract Mesh and "
             "Build Cage again)"
         )
     regions = [region_vertices(surface, h.nerf_deform.region) for h in handles]
@@ -62,11 +64,11 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
         # handle's region wins over them); in Affine Regions only the handles' regions move anyway.
         "cage_pin_index": cage_pins(s.cage),
     }
-    pose = {
-        "mode": s.deformation_mode,
-        "transforms": [handle_target(h, nerf, depsgraph, to_nerf).tolist() for h in handles],
-        "handle_names": [h.name for h in handles],
-    }
+    pose = HandlesPose(
+        DeformMode(s.deformation_mode),
+        tuple(handle_target(h, nerf, depsgraph, to_nerf) for h in handles),
+        tuple(h.name for h in handles),
+    )
     shared = {
         "cage": shared_cage(s.cage.data),
         "embedding": shared_embedding(surface.data, s.cage.data),
@@ -75,8 +77,8 @@ def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict] | None:
     return pose, shared
 
 
-def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict, dict]:
-    """What a frame renders `nerf` at: (pose params, arrays, shared content) for the worker's render.
+def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[Pose, dict]:
+    """What a frame renders `nerf` at: (pose, shared content) for the worker's render.
     `to_nerf`: the NeRF's evaluated world -> NeRF frame (a Matrix) when the caller has it (a render
     computes it once per NeRF and frame); computed here otherwise.
 
@@ -85,7 +87,7 @@ def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict, dict]:
     """
     s = nerf.nerf_deform
     if s.cage is None:
-        return {"kind": "rest"}, {}, {}
+        return RestPose(), {}
     if s.cage.type != "MESH" or not has_cage(s.cage.data):  # set by a script, or its mesh swapped: not a render at rest
         raise CageDataError(
             f"NeRF object '{nerf.name}': its cage is set to '{s.cage.name}', which holds no NeRF cage "
@@ -93,12 +95,11 @@ def frame_pose(nerf, depsgraph, to_nerf=None) -> tuple[dict, dict, dict]:
         )
     if s.deformation_mode == "MODIFIERS":
         deformed = deformed_cage_in_nerf_frame(nerf, s.cage, depsgraph, to_nerf)
-        return {"kind": "cage"}, {"deformed_vertices": deformed}, {"cage": shared_cage(s.cage.data)}
+        return CagePose(deformed), {"cage": shared_cage(s.cage.data)}
     request = handle_pose(nerf, depsgraph, to_nerf)
     if request is None:
-        return {"kind": "rest"}, {}, {}
-    pose, shared = request
-    return {"kind": "handles", **pose}, {}, shared
+        return RestPose(), {}
+    return request
 
 
 def deformed_cage(nerf, depsgraph, client) -> np.ndarray | None:
@@ -107,12 +108,13 @@ def deformed_cage(nerf, depsgraph, client) -> np.ndarray | None:
     s = nerf.nerf_deform
     if s.cage is None or not has_cage(s.cage.data):
         return None
-    pose, arrays, shared = frame_pose(nerf, depsgraph)
-    if pose["kind"] == "cage":
-        return arrays["deformed_vertices"]
-    if pose["kind"] == "rest":
+    pose, shared = frame_pose(nerf, depsgraph)
+    if isinstance(pose, CagePose):
+        return pose.deformed_vertices
+    if isinstance(pose, RestPose):
         return load_cage(s.cage.data)[0]
-    _result, out = client.call("solve", pose, shared=shared)
+    params, arrays = SolveRequest(pose).to_wire()
+    _result, out = client.call("solve", params, arrays, shared=shared)
     return out["deformed_vertices"]
 
 
@@ -124,17 +126,16 @@ class AsyncSolver:
         self.client = client
         self.on_result = on_result
         self.in_flight = False
-        self.waiting: tuple[dict, dict] | None = None
+        self.waiting: tuple[HandlesPose, dict] | None = None
         self.last_error = ""
 
-    def request(self, pose: dict, shared: dict) -> None:
+    def request(self, pose: HandlesPose, shared: dict) -> None:
         if self.in_flight:
             self.waiting = (pose, shared)  # only the newest pose matters
             return
         self.in_flight = True
-        self.client.submit(
-            "solve", {**pose, "answer": "surface"}, shared=shared, on_done=self._done, on_error=self._failed
-        )
+        params, arrays = SolveRequest(pose, SolveAnswer.SURFACE).to_wire()
+        self.client.submit("solve", params, arrays, shared=shared, on_done=self._done, on_error=self._failed)
 
     def _next(self) -> None:
         self.in_flight = False

@@ -40,6 +40,7 @@ from ...engine.bend.baked_volume import MAX_RESOLUTION
 from ...engine.errors import EngineError
 from ...engine.files import StagedFiles, check_writable
 from ...engine.memory import available_memory, gib
+from ...engine.service.requests import BakeVolumeRequest, PoseKind
 from ..data.cage_store import has_cage, load_cage
 from ..data.images import srgb_to_linear
 from ..data.properties import VOLUME_EXTENTS, VOLUME_FRAMES, VOLUME_SHADINGS, OnNeRF, alive, is_deleted, owning_nerf
@@ -246,15 +247,16 @@ class NERFDEFORM_OT_bake_volume(WorkerOperator, OnNeRF, bpy.types.Operator):
             if self.extent == "REGION":
                 extent = self._region
             elif self.extent == "CAGE":
-                extent = "cage" if posed.params["pose"]["kind"] != "rest" else self._rest_cage_box(nerf)
+                extent = "cage" if posed.pose.kind != PoseKind.REST else self._rest_cage_box(nerf)
             self._scale = world_scale(nerf.evaluated_get(depsgraph).matrix_world)
         except ValueError as error:
             raise ValueError(f"frame {frame}: {error}") from None
-        params = {**posed.params, "extent": extent, "resolution": self.resolution, "supersample": self.supersample}
+        request = BakeVolumeRequest(posed.checkpoint, posed.pose, extent, self.resolution, self.supersample)
+        params, arrays = request.to_wire()
         stage = (
             f"frame {frame} ({self._next + 1} of {len(self._frames)})" if len(self._frames) > 1 else f"frame {frame}"
         )
-        return WorkerRequest("bake_volume", params, posed.arrays, stage, posed.shared)
+        return WorkerRequest("bake_volume", params, arrays, stage, posed.shared)
 
     def _rest_cage_box(self, nerf) -> dict:
         cage = alive(nerf.nerf_deform.cage)

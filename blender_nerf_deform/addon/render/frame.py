@@ -28,6 +28,7 @@ import numpy as np
 
 from ...engine.errors import unexpected_error
 from ...engine.service.protocol import content_key
+from ...engine.service.requests import Pose, RenderRequest, WireCamera
 from ..data.camera import CameraError, Pinhole, pinhole_from_blender
 from ..data.depth_compositing import HIT_ALPHA, NO_HIT_DEPTH, composite_by_depth
 from ..data.images import srgb_to_linear
@@ -51,17 +52,17 @@ class NerfPose:
 
     name: str
     to_nerf: np.ndarray  # 4x4: world → the NeRF's frame
-    params: dict  # checkpoint and pose
-    arrays: dict
+    checkpoint: str
+    pose: Pose
+    substeps: int  # the NeRF's Render Substeps
     shared: dict
 
     def signature(self) -> str:
         """Changes whenever what this NeRF renders does (placement, checkpoint, pose, content)."""
         shared_keys = sorted((slot, key) for slot, (key, _load) in self.shared.items())
-        header = repr((self.name, self.params, shared_keys, sorted(self.arrays))).encode()
-        return content_key(
-            np.frombuffer(header, np.uint8), self.to_nerf, *(self.arrays[k] for k in sorted(self.arrays))
-        )
+        pose, arrays = self.pose.to_wire()
+        header = repr((self.name, self.checkpoint, pose, self.substeps, shared_keys, sorted(arrays))).encode()
+        return content_key(np.frombuffer(header, np.uint8), self.to_nerf, *(arrays[k] for k in sorted(arrays)))
 
 
 def nerf_pose(depsgraph, nerf) -> NerfPose:
@@ -69,9 +70,15 @@ def nerf_pose(depsgraph, nerf) -> NerfPose:
     # World -> NeRF frame, computed once per NeRF and frame: the camera, the handles and the
     # cage's placement all use it.
     to_nerf = to_nerf_frame(nerf, nerf.evaluated_get(depsgraph).matrix_world)
-    pose, arrays, shared = frame_pose(nerf, depsgraph, to_nerf)
-    params = {"checkpoint": checkpoint_path(nerf), "pose": pose, "substeps": nerf.nerf_deform.render_substeps}
-    return NerfPose(nerf.name, np.array(to_nerf, dtype=np.float64), params, arrays, shared)
+    pose, shared = frame_pose(nerf, depsgraph, to_nerf)
+    return NerfPose(
+        nerf.name,
+        np.array(to_nerf, dtype=np.float64),
+        checkpoint_path(nerf),
+        pose,
+        nerf.nerf_deform.render_substeps,
+        shared,
+    )
 
 
 @dataclass
@@ -92,10 +99,22 @@ def camera_request(posed: NerfPose, pinhole: Pinhole, substeps: int | None = Non
     jj, ii = np.meshgrid(j, i, indexing="ij")
     d_cam = np.stack([(ii - pinhole.cx) / pinhole.fx, -(jj - pinhole.cy) / pinhole.fy, -np.ones_like(ii)], -1)
     length_in_nerf = np.linalg.norm(d_cam @ c2w[:3, :3].T, axis=-1)
-    params = {**posed.params, "camera": {**pinhole.as_dict(), "camera_to_world": c2w.tolist()}}
-    if substeps is not None:
-        params["substeps"] = substeps
-    return FrameRequest(params, posed.arrays, posed.shared, 1.0 / length_in_nerf)
+    camera = WireCamera(
+        width=pinhole.width,
+        height=pinhole.height,
+        fx=pinhole.fx,
+        fy=pinhole.fy,
+        cx=pinhole.cx,
+        cy=pinhole.cy,
+        camera_to_world=c2w,
+        clip_start=pinhole.clip_start,
+        clip_end=pinhole.clip_end,
+    )
+    request = RenderRequest(
+        posed.checkpoint, camera, posed.pose, substeps=posed.substeps if substeps is None else substeps
+    )
+    params, arrays = request.to_wire()
+    return FrameRequest(params, arrays, posed.shared, 1.0 / length_in_nerf)
 
 
 def scene_pinhole(depsgraph) -> Pinhole:

@@ -26,6 +26,7 @@ from ..geometry.poses import load_poses
 from ..nerf.checkpoint import load_nerf
 from ..nerf.dataset import load_dataset
 from ..png import write_png_rgba
+from ..service.requests import CagePose, RestPose
 
 
 def main(args) -> int:
@@ -38,10 +39,10 @@ def main(args) -> int:
         raise EngineError(f"{cams.source}: two frames are both named {dup!r}; their PNGs would overwrite each other")
     out = Path(args.out)
     check_writable(out, folder=True)
-    cage = poses = None
+    cage, poses = None, [RestPose()] * len(cams.cameras)  # each frame's pose, as the worker's render takes it
     if args.cage is not None:
         cage = load_cage(args.cage)
-        poses = load_poses(cage["vertices"], args.deformed, len(cams.cameras), tets=cage["tets"])
+        poses = [CagePose(v) for v in load_poses(cage["vertices"], args.deformed, len(cams.cameras), tets=cage["tets"])]
     model = load_nerf(args.nerf, device=args.device or "auto")
     renderer = PosedRenderer(model, cage["vertices"], cage["tets"]) if cage is not None else PosedRenderer(model)
     created = not out.exists()
@@ -51,7 +52,8 @@ def main(args) -> int:
     try:
         bar = tqdm(cams.cameras, unit="frame", dynamic_ncols=True)
         for k, cam in enumerate(bar):
-            result = renderer.render(cam, poses[k] if poses is not None else None, substeps=args.substeps)
+            deformed = poses[k].deformed_vertices if isinstance(poses[k], CagePose) else None
+            result = renderer.render(cam, deformed, substeps=args.substeps)
             if result["inversion"] is not None:
                 bar.write(f"frame {cam.name}: {result['inversion'].summary()}")
             write_png_rgba(out / f"{cam.name}.png", result["rgba"])

@@ -182,7 +182,7 @@ def train(job: Job) -> dict:
             callback=report,
             should_stop=job.cancel_event.is_set,
             scene_model=str(request.scene),
-            masks=request.masks,
+            masks=str(request.masks),
         )
     keep = (*_TRAIN_SUMMARY, "masks_reason")
     return {**{k: summary[k] for k in keep if k in summary}, "cancelled": job.cancel_event.is_set()}

@@ -77,7 +77,6 @@ from ..errors import EngineError
 from ..geometry.poses import check_coordinates
 from ..geometry.region import EditRegion, region_from_dict
 from ..nerf.camera import Camera
-from ..nerf.silhouettes import MASK_MEANINGS
 from ..nerf.substeps import check_substeps
 
 
@@ -123,6 +122,14 @@ class SceneModel(enum.StrEnum):
     AUTO = "auto"
     BOUNDED = "bounded"
     UNBOUNDED = "unbounded"
+
+
+class MaskMeaning(enum.StrEnum):
+    """What a dataset's masks mean (nerf/silhouettes.py: MASK_MEANINGS)."""
+
+    AUTO = "auto"
+    OBJECT = "object"  # the object alone is real: outside is empty
+    IGNORE = "ignore"  # the masked-out pixels are not trained
 
 
 class Extent(enum.StrEnum):
@@ -662,16 +669,13 @@ class TrainRequest(_Wire):
     resume: bool = False
     overwrite: bool = False
     scene: SceneModel = SceneModel.AUTO
-    masks: str = "auto"
+    masks: MaskMeaning = MaskMeaning.AUTO
     op: ClassVar[str] = Op.TRAIN
 
     @classmethod
     def from_wire(cls, params: dict, arrays: dict | None = None, where: str | None = None) -> TrainRequest:
         r = _Reader(cls._where(where), params, arrays)
         data, out = r.path("data", "a dataset folder"), r.path("out", "a run folder")
-        masks = params.get("masks", "auto")
-        if masks not in MASK_MEANINGS:
-            raise r.expected("masks", f"one of {', '.join(MASK_MEANINGS)}", masks)
         return cls(
             data,
             out,
@@ -682,7 +686,7 @@ class TrainRequest(_Wire):
             resume=r.flag("resume", False),
             overwrite=r.flag("overwrite", False),
             scene=r.choice("scene", SceneModel, "auto"),
-            masks=masks,
+            masks=r.choice("masks", MaskMeaning, "auto"),
         )
 
     def to_wire(self) -> tuple[dict, dict]:
@@ -692,7 +696,7 @@ class TrainRequest(_Wire):
             "device": self.device,
             "downscale": self.downscale,
             "resume": self.resume,
-            "masks": self.masks,
+            "masks": str(self.masks),
         }
         if self.max_seconds is not None:
             params["max_seconds"] = self.max_seconds
