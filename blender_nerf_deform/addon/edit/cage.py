@@ -10,6 +10,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ...engine.service.requests import CageRequest
 from ..data.cage_store import cage_vertex_parts, separate_regions, store_cage, store_cut_pins, store_embedding
 from ..data.mesh_attributes import cut_flags, part_labels, set_part_labels
 from ..data.paths import checkpoint_path
@@ -106,12 +107,18 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
         # With the checkpoint and the extraction threshold the worker widens the margin where the
         # NeRF's density is still soft, as the `cage` command does (one stage function for both).
         # (A NeRF object without a checkpoint, made by a script, gets the cage at the plain margin.)
-        params = {"threshold": nerf.nerf_deform.threshold, "pin_cut": nerf.nerf_deform.pin_cut}
-        if nerf.nerf_deform.checkpoint:
-            params["checkpoint"] = checkpoint_path(nerf)
-        if self.refine_selected and self.refine_edge > 0:
-            params["refine_edge"] = float(self.refine_edge)
-        return "cage", params, arrays
+        request = CageRequest(
+            arrays["vertices"],
+            arrays["faces"],
+            arrays.get("cut"),
+            arrays.get("part"),
+            arrays.get("refine"),
+            checkpoint=checkpoint_path(nerf) if nerf.nerf_deform.checkpoint else None,
+            threshold=nerf.nerf_deform.threshold,
+            pin_cut=nerf.nerf_deform.pin_cut,
+            refine_edge=float(self.refine_edge) if self.refine_selected and self.refine_edge > 0 else None,
+        )
+        return "cage", *request.to_wire()
 
     def apply(self, context, result, arrays):
         nerf = self._nerf

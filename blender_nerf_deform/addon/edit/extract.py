@@ -14,6 +14,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ...engine.service.requests import ExtractRequest
 from ..data.cage_store import (
     EMBED_CONTENT_KEY,
     EMBED_COUNT_KEY,
@@ -86,17 +87,9 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, OnNeRF, bpy.types.Operator):
         regions = edit_regions_of(nerf)  # ValueError naming a region without a box
         self._nerf, self._regions = nerf, regions
         self._region_names = [r.name for r in regions_of(nerf)]
-        params = {
-            "checkpoint": checkpoint_path(nerf),
-            "threshold": s.threshold,
-            "resolution": s.resolution,
-            "min_volume": s.min_volume,
-        }
-        if regions:
-            params["regions"] = regions
-        if s.pick_object:
-            params["pick"] = list(to_nerf_frame(nerf) @ context.scene.cursor.location)
-        return "extract", params, None
+        pick = tuple(to_nerf_frame(nerf) @ context.scene.cursor.location) if s.pick_object else None
+        request = ExtractRequest(checkpoint_path(nerf), s.threshold, s.resolution, s.min_volume, tuple(regions), pick)
+        return "extract", request.to_wire()[0], None
 
     def _fail(self, error: Exception) -> set[str]:
         # The worker numbers the regions ("edit regions 1 and 2 overlap"): say which Empties those are.

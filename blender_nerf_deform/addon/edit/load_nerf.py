@@ -8,6 +8,7 @@ import bpy
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ...engine.service.requests import LoadRequest
 from ..data.properties import RENDER_ENGINE_ID, add_app_handlers, remove_app_handlers, select_only
 from ..worker.jobs import WorkerOperator
 
@@ -104,7 +105,7 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         if not os.path.isfile(path):
             raise ValueError(f"checkpoint {path} does not exist")
         self._path = path
-        return "load", {"path": path}, None
+        return "load", *LoadRequest(path).to_wire()
 
     def invoke(self, context, event):
         # The file browser first; its confirmation calls execute().

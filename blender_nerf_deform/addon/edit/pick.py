@@ -15,6 +15,7 @@ import numpy as np
 from bpy.props import FloatVectorProperty
 from mathutils import Vector
 
+from ...engine.service.requests import FirstSurfaceRequest
 from ..data.paths import checkpoint_path
 from ..data.properties import OnNeRF, owning_nerf, to_nerf_frame
 from ..worker.client import WorkerError
@@ -51,13 +52,10 @@ class NERFDEFORM_OT_place_cursor_on_nerf(OnNeRF, bpy.types.Operator):
         to_nerf = to_nerf_frame(nerf)
         origin = to_nerf @ Vector(origin_world.tolist())
         direction = to_nerf.to_3x3() @ Vector(direction_world.tolist())
-        params = {
-            "checkpoint": checkpoint_path(nerf),
-            "origin": list(origin),
-            "direction": list(direction),
-            "threshold": float(nerf.nerf_deform.threshold),
-        }
-        result, _ = worker(context).call("first_surface", params)
+        request = FirstSurfaceRequest(
+            checkpoint_path(nerf), tuple(origin), tuple(direction), float(nerf.nerf_deform.threshold)
+        )
+        result, _ = worker(context).call("first_surface", *request.to_wire())
         if not result["hit"]:
             raise ValueError(
                 f"the ray meets no density above the threshold {result['threshold']:g} in "

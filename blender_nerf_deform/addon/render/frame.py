@@ -99,17 +99,7 @@ def camera_request(posed: NerfPose, pinhole: Pinhole, substeps: int | None = Non
     jj, ii = np.meshgrid(j, i, indexing="ij")
     d_cam = np.stack([(ii - pinhole.cx) / pinhole.fx, -(jj - pinhole.cy) / pinhole.fy, -np.ones_like(ii)], -1)
     length_in_nerf = np.linalg.norm(d_cam @ c2w[:3, :3].T, axis=-1)
-    camera = WireCamera(
-        width=pinhole.width,
-        height=pinhole.height,
-        fx=pinhole.fx,
-        fy=pinhole.fy,
-        cx=pinhole.cx,
-        cy=pinhole.cy,
-        camera_to_world=c2w,
-        clip_start=pinhole.clip_start,
-        clip_end=pinhole.clip_end,
-    )
+    camera = WireCamera.from_pinhole(pinhole, c2w)
     request = RenderRequest(
         posed.checkpoint, camera, posed.pose, substeps=posed.substeps if substeps is None else substeps
     )

@@ -19,6 +19,7 @@ import threading
 
 import bpy
 
+from ...engine.service.requests import WarmRequest
 from ..data.paths import addon_preferences, checkpoint_path
 from ..data.properties import add_app_handlers, remove_app_handlers
 from ..worker import jobs
@@ -49,7 +50,7 @@ def start(client: WorkerClient, checkpoints: list[str]) -> threading.Thread:
 
     def run():
         try:
-            client.submit("warm", {"checkpoints": checkpoints}, on_error=_report)
+            client.submit("warm", *WarmRequest(tuple(checkpoints)).to_wire(), on_error=_report)
         except Exception as error:  # whatever it was, a convenience that failed: one line, no traceback
             _report(error)
 

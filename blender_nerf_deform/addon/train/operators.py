@@ -28,6 +28,7 @@ import os
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
+from ...engine.service.requests import MaskMeaning, TrainRequest
 from ..data.paths import default_run_folder, same_file
 from ..worker.jobs import WorkerOperator
 
@@ -57,19 +58,17 @@ def train_params(
     data: str, out: str, seconds: float, steps: int, device: str, downscale: int, resume: bool, masks: str = "auto"
 ) -> dict:
     """The worker's `train` request (a budget of seconds and/or steps; 0 is no limit)."""
-    params = {
-        "data": data,
-        "out": out,
-        "device": device,
-        "downscale": int(downscale),
-        "resume": bool(resume),
-        "masks": masks,
-    }
-    if seconds > 0:
-        params["max_seconds"] = float(seconds)
-    if steps > 0:
-        params["steps"] = int(steps)
-    return params
+    request = TrainRequest(
+        data,
+        out,
+        steps=int(steps) if steps > 0 else None,
+        max_seconds=float(seconds) if seconds > 0 else None,
+        device=device,
+        downscale=int(downscale),
+        resume=bool(resume),
+        masks=MaskMeaning(masks),
+    )
+    return request.to_wire()[0]
 
 
 def show_trained(op, context, result: dict, ckpt: str) -> set[str]:

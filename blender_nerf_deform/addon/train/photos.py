@@ -22,6 +22,7 @@ import os
 import bpy
 from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
+from ...engine.service.requests import Matcher, PrepareRequest
 from ...engine.sfm import photo_names
 from ..data.paths import default_run_folder
 from ..worker.jobs import WorkerOperator, WorkerRequest
@@ -97,9 +98,8 @@ class NERFDEFORM_OT_import_photos(WorkerOperator, bpy.types.Operator):
         if os.path.exists(dataset) and (not os.path.isdir(dataset) or os.listdir(dataset)):
             raise ValueError(f"{dataset} already holds a dataset: train it with Train NeRF, or pick another run folder")
         self._run, self._dataset, self._checkpoint = run, dataset, ckpt
-        return WorkerRequest(
-            "prepare", {"images": photos, "out": dataset, "matcher": self.matcher}, None, "1/2 cameras"
-        )
+        request = PrepareRequest(photos, dataset, Matcher(self.matcher))
+        return WorkerRequest("prepare", request.to_wire()[0], None, "1/2 cameras")
 
     def apply(self, context, result, arrays):
         if self.current_request.op == "prepare":

@@ -29,6 +29,7 @@ import bpy
 import numpy as np
 from bpy.props import IntProperty, StringProperty
 
+from ...engine.service.requests import TrainingPreviewRequest, WireCamera
 from ..data.camera import CameraError, pinhole_from_blender, render_size
 from ..data.images import show_in_image_editors, srgb_to_linear, write_image
 from ..data.paths import default_run_folder, same_file
@@ -95,11 +96,11 @@ def preview_params(context, checkpoint: str, max_size: int) -> dict:
         width, height = render_size(scene.render)
         scale = max_size / max(width, height, 1)
         size = [max(1, round(width * scale)), max(1, round(height * scale))]
-        return {"checkpoint": checkpoint, "camera": None, "size": size}
+        return TrainingPreviewRequest(checkpoint, None, tuple(size)).to_wire()[0]
     pinhole = pinhole_from_blender(scene, scene.camera.evaluated_get(context.evaluated_depsgraph_get()))
     pinhole = pinhole.downscaled(max(1, math.ceil(max(pinhole.width, pinhole.height) / max_size)))
     c2w = world_to_nerf(context, checkpoint) @ np.array(pinhole.camera_to_world, dtype=np.float64)
-    return {"checkpoint": checkpoint, "camera": {**pinhole.as_dict(), "camera_to_world": c2w.tolist()}}
+    return TrainingPreviewRequest(checkpoint, WireCamera.from_pinhole(pinhole, c2w)).to_wire()[0]
 
 
 def show_preview(result: dict, arrays: dict) -> str:

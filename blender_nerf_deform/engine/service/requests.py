@@ -297,6 +297,22 @@ class WireCamera(_Wire):
     clip_end: float | None = None
 
     @classmethod
+    def from_pinhole(cls, pinhole: Any, camera_to_world: np.ndarray) -> WireCamera:
+        """The camera of a pinhole (an object with its attributes: the add-on's `data.camera.Pinhole`)
+        placed at `camera_to_world` (the NeRF's frame)."""
+        return cls(
+            width=pinhole.width,
+            height=pinhole.height,
+            fx=pinhole.fx,
+            fy=pinhole.fy,
+            cx=pinhole.cx,
+            cy=pinhole.cy,
+            camera_to_world=camera_to_world,
+            clip_start=pinhole.clip_start,
+            clip_end=pinhole.clip_end,
+        )
+
+    @classmethod
     def from_wire(cls, value: Any, reader: _Reader, name: str = "camera") -> WireCamera:
         if not isinstance(value, dict):
             raise reader.expected(name, "a camera (a JSON object)", value)
@@ -647,8 +663,7 @@ class CageRequest(_Wire):
         for name in ("checkpoint", "threshold", "margin", "edge_length", "target_tets", "refine_edge"):
             if getattr(self, name) is not None:
                 params[name] = getattr(self, name)
-        if not self.pin_cut:
-            params["pin_cut"] = False
+        params["pin_cut"] = self.pin_cut
         if self.refine_box is not None:
             params["refine_box"] = np.asarray(self.refine_box, dtype=np.float64).reshape(-1).tolist()
         arrays = {"vertices": self.vertices, "faces": self.faces}
@@ -815,9 +830,12 @@ class FirstSurfaceRequest(_Wire):
         return cls(checkpoint, ray[0], ray[1], float(r.number("threshold", FIRST_SURFACE_THRESHOLD)), r.device())
 
     def to_wire(self) -> tuple[dict, dict]:
-        params = {"checkpoint": self.checkpoint, "origin": list(self.origin), "direction": list(self.direction)}
-        if self.threshold != FIRST_SURFACE_THRESHOLD:
-            params["threshold"] = self.threshold
+        params = {
+            "checkpoint": self.checkpoint,
+            "origin": list(self.origin),
+            "direction": list(self.direction),
+            "threshold": self.threshold,
+        }
         return _with_device(params, self.device), {}
 
 
