@@ -102,7 +102,7 @@ class WorkerOperator:
                     request.params,
                     request.arrays,
                     shared=request.shared,
-                    on_progress=lambda f, msg: print(f"{label}: {100 * f:5.1f}% {msg}"),
+                    on_progress=lambda f, msg, label=label: print(f"{label}: {100 * f:5.1f}% {msg}"),
                 )
             except (WorkerError, ValueError) as error:
                 return self._fail(error)

@@ -3,7 +3,7 @@
     python -m blender_nerf_deform.engine compile
 
 Without it the first `train` or `render` on a machine compiles every kernel it touches on the way
-(a 270x480 fox frame: 11.3 s from a fresh cache, 3.0 s from a warm one). Run it where the time is
+(several seconds more than from a warm cache). Run it where the time is
 expected: after installing (Set Up Worker does), or in a render farm's image build. The cache is
 numba's: NUMBA_CACHE_DIR when set (the add-on's worker sets it), else `__pycache__` beside the
 sources. Writes nothing else.

@@ -46,6 +46,7 @@ def main(args) -> int:
     print(res.report())
     t = res.timings
     print(
-        f"grid {t['grid_s']:.1f}s, marching cubes {t['marching_cubes_s']:.1f}s, filter {t['filter_s']:.1f}s -> {args.out}"
+        f"grid {t['grid_s']:.1f}s, marching cubes {t['marching_cubes_s']:.1f}s, filter {t['filter_s']:.1f}s "
+        f"-> {args.out}"
     )
     return 0

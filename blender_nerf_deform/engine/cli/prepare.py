@@ -15,7 +15,8 @@ def main(args) -> int:
     )
     t = summary["timings"]
     print(
-        f"prepare: {summary['registered']} of {summary['photos']} photos registered ({summary['points']} sparse points, "
+        f"prepare: {summary['registered']} of {summary['photos']} photos registered "
+        f"({summary['points']} sparse points, "
         f"camera {summary['camera_model']}); features {t['features_s']:.1f}s, matching {t['matching_s']:.1f}s, "
         f"mapping {t['mapping_s']:.1f}s -> {args.out}/transforms.json"
     )

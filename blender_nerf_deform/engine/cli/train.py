@@ -1,7 +1,8 @@
 """`train`: train a NeRF on a transforms.json dataset, write RUN_DIR/nerf.ckpt.
 
     python -m blender_nerf_deform.engine train --data DIR --out RUN_DIR
-        [--max-seconds S] [--steps N] [--seed N] [--device auto|cpu|cuda] [--downscale K] [--scene auto|bounded|unbounded]
+        [--max-seconds S] [--steps N] [--seed N] [--device auto|cpu|cuda] [--downscale K]
+        [--scene auto|bounded|unbounded]
         [--masks auto|object|ignore] [--resume | --overwrite]
 
 Without --max-seconds or --steps it trains for 300 seconds. The checkpoint is

@@ -47,15 +47,15 @@ def box_cage(shape=(4, 4, 4), lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0)) -> tuple[n
     def vid(i, j, k):
         return (i * (ny + 1) + j) * (nz + 1) + k
 
-    I, J, K = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
-    I, J, K = I.ravel(), J.ravel(), K.ravel()
+    ci, cj, ck = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    ci, cj, ck = ci.ravel(), cj.ravel(), ck.ravel()
     tets = []
     unit = np.eye(3, dtype=int)
     for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
         path = [np.zeros(3, dtype=int)]
         for axis in perm:
             path.append(path[-1] + unit[axis])
-        tets.append(np.stack([vid(I + p[0], J + p[1], K + p[2]) for p in path], axis=1))
+        tets.append(np.stack([vid(ci + p[0], cj + p[1], ck + p[2]) for p in path], axis=1))
     T = np.concatenate(tets).astype(np.int64)
     return V, orient_tets(V, T)
 
@@ -239,10 +239,10 @@ def build_cage(
             raise EngineError(f"cage edge length must be positive, got {edge_length}")
         kw["edge_length_abs"] = float(edge_length)
     # fTetWild is not deterministic (not even single-threaded: the same mesh gives a different
-    # cage on every run), and once, in CI, on a noisy 300-step sphere NeRF's mesh, a run returned
-    # a cage that left part of the object outside (clearance -1.5); 180 rebuilds of similar meshes
-    # here all passed. So every result is validated, and a rejected one is rebuilt, up to
-    # `attempts` runs in all, before the error is reported.
+    # cage on every run), and a run has been seen to return a cage that left part of the object
+    # outside, on a noisy mesh that rebuilds of similar meshes handled. So every result is
+    # validated, and a rejected one is rebuilt, up to `attempts` runs in all, before the error is
+    # reported.
     timings["tetrahedralize_s"] = timings["clearance_check_s"] = 0.0
     runs = max(1, int(attempts))
     for attempt in range(runs):
@@ -286,7 +286,8 @@ def _tetrahedralize_checked(V, ev, ef, epsilon, margin, optimize, threads, kw, t
     timings["clearance_check_s"] += time.perf_counter() - t0
     if clearance < margin * (1 - 1e-6):
         raise EngineError(
-            f"cage clearance {clearance:.4g} is below the margin {margin:.4g} (some of the object lies outside or too close)"
+            f"cage clearance {clearance:.4g} is below the margin {margin:.4g} "
+            "(some of the object lies outside or too close)"
         )
     return CV, CT, clearance
 
@@ -352,7 +353,8 @@ def build_nerf_cage(
         if soft.mean() <= 0.005 or attempt == 3:
             break
         log(
-            f"cage: {soft.mean():.1%} of the envelope at margin {margin:.4g} still has density > {0.1 * threshold:g}; widening"
+            f"cage: {soft.mean():.1%} of the envelope at margin {margin:.4g} still has density "
+            f"> {0.1 * threshold:g}; widening"
         )
         margin *= 1.5
     return build_cage(V, F, margin, edge_length=edge_length, target_tets=target_tets, check_mesh=False)
