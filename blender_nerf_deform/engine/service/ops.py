@@ -38,6 +38,7 @@ from .requests import (
     FirstSurfaceRequest,
     HandlesPose,
     LoadRequest,
+    Op,
     PrepareRequest,
     RenderRequest,
     RestPose,
@@ -73,12 +74,12 @@ def _box(model) -> np.ndarray:
     return model.aabb.detach().cpu().double().numpy().reshape(2, 3)
 
 
-@op("info")
+@op(Op.INFO)
 def info(job: Job) -> dict:
     return {"python": sys.executable, "pid": os.getpid(), **device_summary()}
 
 
-@op("load")
+@op(Op.LOAD)
 def load(job: Job) -> dict:
     """Read a checkpoint: its bounds and configuration, for placing it in the scene."""
     request = LoadRequest.from_wire(job.params, job.arrays)
@@ -90,7 +91,7 @@ def load(job: Job) -> dict:
     }
 
 
-@op("extract")
+@op(Op.EXTRACT)
 def extract(job: Job) -> tuple[dict, dict]:
     """The NeRF's surface: marching cubes of its density, floaters dropped, vertex colours."""
     request = ExtractRequest.from_wire(job.params, job.arrays)
@@ -148,7 +149,7 @@ def _training_progress(job: Job, trainer, request: TrainRequest, last: list) -> 
 _TRAIN_SUMMARY = ("steps", "seconds", "psnr", "loss", "checkpoint", "device", "images", "width", "height", "masks")
 
 
-@op("train")
+@op(Op.TRAIN)
 def train(job: Job) -> dict:
     """Train a NeRF on a dataset folder (every format `train` reads) into a run folder, as the
     `train` command does, with progress. Cancelling stops after the current step and still writes
@@ -233,7 +234,7 @@ def _training_preview_of(side: Job, trainer) -> tuple[dict, dict]:
     )
 
 
-@op("training_preview", side=True)
+@op(Op.TRAINING_PREVIEW, side=True)
 def training_preview(job: Job) -> tuple[dict, dict]:
     """A small frame of a training run. While the run's training runs in this worker, that training
     answers it between steps with the model as it is (`_training_preview_of`); otherwise (the
@@ -250,7 +251,7 @@ def training_preview(job: Job) -> tuple[dict, dict]:
     return _preview_frame(job, camera, {"source": "checkpoint", "checkpoint": path}, model=model)
 
 
-@op("prepare")
+@op(Op.PREPARE)
 def prepare_photos(job: Job) -> dict:
     """Photos -> a transforms.json dataset by structure from motion, as the `prepare` command does, with
     progress per stage (features, matching, mapping: each photo registered). Cancelling stops pycolmap
@@ -274,7 +275,7 @@ def prepare_photos(job: Job) -> dict:
     return {**summary, "dataset": request.out}
 
 
-@op("first_surface")
+@op(Op.FIRST_SURFACE)
 def first_surface(job: Job) -> dict:
     """Where a ray (NeRF frame) first meets the NeRF's density above the threshold, in its box:
     what a click on the NeRF picks (the 3D cursor put on the object)."""
@@ -295,7 +296,7 @@ def first_surface(job: Job) -> dict:
     }
 
 
-@op("cage")
+@op(Op.CAGE)
 def cage(job: Job) -> tuple[dict, dict]:
     """Build the cage around a surface mesh once, and embed the surface in it (geometry/cage_build.py,
     what the `cage` command calls too). With a checkpoint the margin is widened where the NeRF's
@@ -393,7 +394,7 @@ def _handle_pose(job: Job, pose: HandlesPose) -> HandlePose:
     return HandlePose(cage_key, cage_arrays, (cage_key, emb_key), embedding, deformed, stats)
 
 
-@op("solve")
+@op(Op.SOLVE)
 def solve(job: Job) -> tuple[dict, dict]:
     """A pose of the handles: the deformed cage vertices, or with answer "surface" the deformed
     extracted mesh (float32, its vertex order), which is all the live preview draws."""
@@ -432,7 +433,7 @@ def _inversion_stats(stats: dict, inversion) -> None:
         stats.update(inverted_tets=inversion.n_inverted, degenerate_tets=inversion.n_degenerate)
 
 
-@op("render")
+@op(Op.RENDER)
 def render(job: Job) -> tuple[dict, dict]:
     """One frame from a pinhole camera in the NeRF's frame, at the pose given, solved here: arrays
     `rgba` (H,W,4) float32 straight alpha, rows top-down, and `depth` (H,W) float32, the expected
@@ -459,7 +460,7 @@ def render(job: Job) -> tuple[dict, dict]:
 WARM_VIEW = 8
 
 
-@op("warm")
+@op(Op.WARM)
 def warm(job: Job) -> dict:
     """Load each checkpoint and render a small view of its box: what a file's first frame would otherwise
     wait for (the file read, numba's first run of the frame's kernels). Returns each view's colour samples
@@ -475,7 +476,7 @@ def warm(job: Job) -> dict:
     return {"color_samples_per_ray": samples}
 
 
-@op("bake_volume")
+@op(Op.BAKE_VOLUME)
 def bake_volume(job: Job) -> tuple[dict, dict]:
     """The NeRF at the pose given sampled on a voxel grid (bend/volume.py), for an OpenVDB file: `shape`
     and `index_to_nerf` (4x4, voxel index -> the NeRF's frame) with the stats, and arrays `index` (N,3)

@@ -89,9 +89,9 @@ def op(name: str, side: bool = False) -> Callable[[Handler], Handler]:
     """Register a handler for requests of kind `name`; `side`: a side op (see the module docstring)."""
 
     def register(fn: Handler) -> Handler:
-        HANDLERS[name] = fn
+        HANDLERS[str(name)] = fn  # the op's plain name (requests.Op is a StrEnum), as the wire spells it
         if side:
-            SIDE_OPS.add(name)
+            SIDE_OPS.add(str(name))
         return fn
 
     return register
