@@ -22,14 +22,12 @@ pytestmark = pytest.mark.slow
 # Asked of numba: every kernel loaded from the cache or compiled (and then saved) is reported.
 SAVED = "[cache] data saved to"
 
+# The ARAP a handle pose solves (the reference deform.ArapDeformer serves tests and benchmarks: not compiled).
 _ARAP = """
 import numpy as np
-from blender_nerf_deform.engine.geometry.deform import ArapDeformer
 from blender_nerf_deform.engine.geometry.warmup import lattice_cage
 v, t = lattice_cage((0, 0, 0), (2.0, 1.0, 3.0), n=5)
-top, bottom = np.flatnonzero(v[:, 2] > 2.9), np.flatnonzero(v[:, 2] < 0.1)
 A = np.eye(4); A[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # a quarter turn
-ArapDeformer(v, t, handles=[top], pins=[bottom]).solve([A], max_iter=5)
 from blender_nerf_deform.engine.geometry.embedding import embed_points
 from blender_nerf_deform.engine.geometry.surface_arap import SurfaceArap
 p = v[(v[:, 0] > 0.1) & (v[:, 0] < 1.9)] * 0.98 + 0.01

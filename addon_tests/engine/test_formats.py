@@ -10,6 +10,7 @@ camera must look at the common centre, in front of it.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 
 import numpy as np
@@ -28,6 +29,7 @@ from fixtures.format_data import (
 from PIL import Image
 
 from blender_nerf_deform.engine.errors import EngineError
+from blender_nerf_deform.engine.logs import ENGINE_LOGGER
 from blender_nerf_deform.engine.nerf.camera import Distortion
 from blender_nerf_deform.engine.nerf.dataset import load_dataset
 from blender_nerf_deform.engine.sfm.orient import axes_focus
@@ -94,7 +96,8 @@ def test_llff_gives_the_cameras_of_its_transforms_json(tmp_path):
     assert (ilo <= near_point).all() and (near_point <= ihi).all()
 
 
-def test_llff_folder_choice_and_focal_scaling(tmp_path, capsys):
+def test_llff_folder_choice_and_focal_scaling(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger=ENGINE_LOGGER)
     c2ws, names = forward_facing_cameras(2), _names(4)
     llff = write_llff(tmp_path / "llff", c2ws, SIZE, names, factors=(2, 4), full_factor=4)
     full_f = focal(SIZE * 4)
@@ -106,7 +109,7 @@ def test_llff_folder_choice_and_focal_scaling(tmp_path, capsys):
         ds = load_dataset(llff, **kwargs)
         assert ds.meta["images_folder"] == folder and ds.width == width and ds.images.shape[2] == width, kwargs
         assert ds.cameras[0].fx == pytest.approx(full_f * width / (4 * SIZE)) and ds.cameras[0].cx == width / 2
-    assert "no full-resolution images/ folder: reading images_2/" in capsys.readouterr().err
+    assert "no full-resolution images/ folder: reading images_2/" in caplog.text
     # The image folder itself, and downscale on top of it.
     ds = load_dataset(llff / "images_4", downscale=2, load_images=False)
     assert ds.width == SIZE // 2 and ds.cameras[0].fx == pytest.approx(full_f / 8) and ds.images is None
@@ -144,13 +147,13 @@ def test_colmap_text_and_binary_models_give_the_cameras_of_its_transforms_json(t
     assert load_dataset(radial, load_images=False).cameras[0].distortion == Distortion("opencv", k1=0.05)
 
 
-def test_missing_photos_are_skipped_with_a_warning_or_named(tmp_path, capsys):
+def test_missing_photos_are_skipped_with_a_warning_or_named(tmp_path, caplog):
     c2ws, names = sphere_cameras(5), _names(5)
     root = write_colmap_text(tmp_path / "colmap", c2ws, SIZE, names)
     (root / "images" / "IMG_0002.png").unlink()
     ds = load_dataset(root)
     assert ds.names == ["IMG_0000", "IMG_0001", "IMG_0003", "IMG_0004"]
-    assert "1 of 5 frames have no image file and are skipped (first: IMG_0002.png)" in capsys.readouterr().err
+    assert "1 of 5 frames have no image file and are skipped (first: IMG_0002.png)" in caplog.text
     assert len(load_dataset(root, load_images=False)) == 5  # cameras only: the model states every size
     shutil.rmtree(root / "images")
     with pytest.raises(EngineError, match=r"no folder of photos beside the COLMAP model"):
@@ -306,7 +309,8 @@ def test_nerfstudio_masks_and_applied_transform(tmp_path):
     _one_line_error(r"`applied_transform` must be a finite 3x4 matrix", folder)
 
 
-def test_dropping_blurry_frames(tmp_path, capsys):
+def test_dropping_blurry_frames(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger=ENGINE_LOGGER)
     folder = tmp_path / "sharp"
     folder.mkdir()
     rng = np.random.default_rng(0)
@@ -320,7 +324,7 @@ def test_dropping_blurry_frames(tmp_path, capsys):
         frames.append({"file_path": f"{k}.png", "transform_matrix": np.eye(4).tolist()})
     (folder / "transforms.json").write_text(json.dumps({"fl_x": 16.0, "w": 16, "h": 16, "frames": frames}))
     assert load_dataset(folder, min_sharpness_quantile=0.5).names == ["0", "2"]  # measured from the images
-    assert "dropped the 2 blurriest of 4 frames" in capsys.readouterr().err
+    assert "dropped the 2 blurriest of 4 frames" in caplog.text
     assert len(load_dataset(folder, min_sharpness_quantile=0.2)) == 4  # a fifth of 4 frames: none
     for f, s in zip(frames, (5.0, 1.0, 2.0, 9.0)):
         f["sharpness"] = s  # instant-ngp's per-frame values win when every frame has one

@@ -6,7 +6,7 @@ Every ray sample in deformed space is decided on its own (not per grid cell):
   T_rest · T_deformed⁻¹ and the NeRF is queried there; its view direction is
   turned by the rotation of that affine (polar decomposition), so
   view-dependent colour follows the surface (switch: `rotate_directions`);
-- stretch and compression along the ray (issue 18): each sample's density is
+- stretch and compression along the ray: each sample's density is
   scaled by |A d| (A: its tet's deformed→rest linear part, d the unit ray), the
   rest-space length of a unit step, so the NeRF's opacity is integrated over
   the rest-space path (a shell squashed across the ray stays as opaque; one
@@ -78,9 +78,8 @@ _CORNERS = np.array([[k & 1, (k >> 1) & 1, k >> 2] for k in range(8)])
 # march with a finer step: render_step / (the compression that STEP_REFINE_SHARE of the content's rest
 # volume reaches or exceeds), once that exceeds STEP_REFINE_FROM, at most MAX_STEP_REFINE times finer.
 # The step is the whole frame's, so a share and not the maximum: a bend's crease squashes a few tets
-# strongly (the fold-free ARAP holds some near flat: compressions of 25-125x on 1-2 % of make demo's
-# content), and refining the whole frame for them made a bent 1080p demo frame 2.5x slower
-# (BENCHMARKS.md, issue 18); a squash of the whole part (the ground truth's 0.5x) still refines.
+# strongly (the fold-free ARAP holds some near flat, on a small share of the content), and refining
+# the whole frame for them made a bent frame much slower; a squash of the whole part still refines.
 STEP_REFINE_FROM = 1.5
 MAX_STEP_REFINE = 4.0
 STEP_REFINE_SHARE = 0.1
@@ -112,9 +111,8 @@ class CageBend:
         self.rotate_directions = rotate_directions
         self.density_correction = density_correction
         # Off by default: a finer step is applied to the whole frame, and it changes the undeformed
-        # parts too (a different quadrature: up to 9-44/255 premultiplied at a few edge pixels, mean
-        # 0.1/255; BENCHMARKS "Why the finer frame step is off"), so an edit would change what it
-        # did not touch. A per-cell step would not; the squash target is met without it.
+        # parts too (a different quadrature, visible at a few edge pixels), so an edit would change what
+        # it did not touch. A per-cell step would not; the squash target is met without it.
         self.refine_step = refine_step
         self.max_occupancy_resolution = max_occupancy_resolution
         self.deformed: TetLocator | None = None

@@ -20,12 +20,11 @@ emission-absorption volume. One grid per frame:
   looking against the density's gradient (central differences on the baked
   density), turned into rest space with the tet; where the density is flat
   (inside a solid) the mean over the 12 directions of an icosahedron (a
-  spherical 5-design). Measured against a camera's own view direction on the
-  demo NeRF (Cycles against the NeRF Deform engine, 128^3): head-on 32.2 dB,
-  the cosine-weighted mean over the outward hemisphere 32.1, the mean over all
-  directions 31.2 (directions never photographed, from inside the object, pull
-  it off), the camera's own direction 33.0; head-on is also one colour
-  evaluation per point instead of twelve. sRGB, as the NeRF learnt it; the
+  spherical 5-design). Compared with a camera's own view direction (Cycles
+  against the NeRF Deform engine), head-on is as close as the cosine-weighted
+  mean over the outward hemisphere and closer than the mean over all
+  directions (directions never photographed, from inside the object, pull it
+  off); it is also one colour evaluation per point instead of twelve. sRGB, as the NeRF learnt it; the
   density-weighted mean over the voxel's points. Voxels next to dense ones get
   their neighbours' colour, so that a renderer's trilinear lookup at a surface
   does not blend in black.
@@ -46,7 +45,7 @@ import torch
 
 from ..errors import EngineError
 from ..geometry.region import EditRegion, check_region_in_box
-from ..nerf.renderer import _blocked_color, _blocked_density  # the renderer's own field evaluation, block by block
+from ..nerf.renderer import blocked_color, blocked_density  # the renderer's own field evaluation, block by block
 from .baked_volume import BakedVolume, VolumeGrid, box_of_bounds, check_volume_memory
 
 POINTS_PER_BATCH = 1 << 18  # sample points evaluated at once (bounded memory whatever the grid)
@@ -161,7 +160,7 @@ class _VoxelSampler:
             scale = torch.ones(len(pts), device=dev)
             rotation = torch.eye(3, device=dev).expand(len(pts), 3, 3)
         pts, scale, rotation, owner = pts[keep], scale[keep], rotation[keep], owner[keep]
-        sigma, geo = _blocked_density(self.model, pts) if len(pts) else (pts.new_zeros(0), None)
+        sigma, geo = blocked_density(self.model, pts) if len(pts) else (pts.new_zeros(0), None)
         sigma = sigma * scale
         dense = sigma > 0
         if not skip_empty:
@@ -194,13 +193,13 @@ def _seen_color(model, geo: torch.Tensor, rotation: torch.Tensor, outward: torch
     out = geo.new_zeros(len(geo), 3)
     if head_on.any():
         d = torch.einsum("bij,bj->bi", rotation[head_on], -outward[head_on])
-        out[head_on] = _blocked_color(model, geo[head_on], d)
+        out[head_on] = blocked_color(model, geo[head_on], d)
     if (~head_on).any():
         g, r = geo[~head_on], rotation[~head_on]
         dirs = torch.as_tensor(VIEW_DIRECTIONS, dtype=torch.float32, device=geo.device)
         k = len(dirs)
         rest_dirs = torch.einsum("bij,kj->bki", r, dirs).reshape(-1, 3)
-        out[~head_on] = _blocked_color(model, g.repeat_interleave(k, dim=0), rest_dirs).reshape(len(g), k, 3).mean(1)
+        out[~head_on] = blocked_color(model, g.repeat_interleave(k, dim=0), rest_dirs).reshape(len(g), k, 3).mean(1)
     return out
 
 

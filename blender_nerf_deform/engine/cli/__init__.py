@@ -16,6 +16,7 @@ import importlib
 import sys
 
 from ..errors import EngineError, run_command
+from ..logs import log_to_stderr
 
 PROG = "python -m blender_nerf_deform.engine"
 DATA_HELP = (
@@ -313,4 +314,5 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    log_to_stderr()  # the stages' log lines ("read ...", warnings) on stderr, as they always were
     return run_command(args.command, lambda: args.handler(args))

@@ -2,7 +2,7 @@
 right-hand side gathered per vertex (global step).
 
 Why hand-written: libigl's `arap_solve` recomputes its local step in Eigen
-without threads and costs about twice our per-frame time (BENCHMARKS.md);
+without threads and costs about twice our per-frame time;
 `deform.ArapDeformer` keeps libigl as its reference and its fallback without numba.
 """
 
@@ -14,8 +14,8 @@ from .. import backend
 
 # Edges of a tet in the column order of igl.cotmatrix_entries.
 TET_EDGES = np.array([[1, 2], [2, 0], [0, 1], [3, 0], [3, 1], [3, 2]], dtype=np.int64)
-_E0 = TET_EDGES[:, 0].copy()  # module constants, frozen into the kernels
-_E1 = TET_EDGES[:, 1].copy()
+EDGE_START = TET_EDGES[:, 0].copy()  # module constants, frozen into the kernels
+EDGE_END = TET_EDGES[:, 1].copy()
 
 if backend.HAVE_NUMBA:  # without numba ARAP runs libigl's solver
     from ..kernel_cache import njit, prange
@@ -24,7 +24,7 @@ if backend.HAVE_NUMBA:  # without numba ARAP runs libigl's solver
 if backend.HAVE_NUMBA:
 
     @njit(inline="always")
-    def _horn_matrix(U, T, W, E, t, S, A):
+    def horn_matrix(U, T, W, E, t, S, A):
         """Tet t's covariance S = sum over its edges of w (v_i - v_j)(u_i - u_j)^T (rest edges E, weights
         W, deformed vertices U) and Horn's symmetric 4x4 A of S: its top eigenvector is the quaternion
         of the rotation that best maps the rest edges onto the deformed ones."""
@@ -32,8 +32,8 @@ if backend.HAVE_NUMBA:
             for b in range(3):
                 S[a, b] = 0.0
         for e in range(6):
-            i = T[t, _E0[e]]
-            j = T[t, _E1[e]]
+            i = T[t, EDGE_START[e]]
+            j = T[t, EDGE_END[e]]
             w = W[t, e]
             for a in range(3):  # S = sum w (v_i - v_j)(u_i - u_j)^T: source x target
                 va = w * E[t, e, a]
@@ -54,7 +54,7 @@ if backend.HAVE_NUMBA:
         A[3, 3] = -sxx - syy + szz
 
     @njit(inline="always")
-    def _quaternion_rotation(q0, q1, q2, q3, R):
+    def quaternion_rotation(q0, q1, q2, q3, R):
         """R = the rotation of the unit quaternion (q0, q1, q2, q3)."""
         R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
         R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
@@ -67,7 +67,7 @@ if backend.HAVE_NUMBA:
         R[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
 
     @njit(inline="always")
-    def _jacobi_top_eigenvector(A, Q):
+    def jacobi_top_eigenvector(A, Q):
         """Eigenvector of the largest eigenvalue of the symmetric 4x4 A (overwritten), into Q[:, k]; returns k.
 
         Cyclic Jacobi rotations: robust for repeated eigenvalues, and a 4x4
@@ -132,18 +132,18 @@ if backend.HAVE_NUMBA:
             S = np.empty((3, 3))
             R = np.empty((3, 3))
             for t in range(chunk * m // n_chunks, (chunk + 1) * m // n_chunks):
-                _horn_matrix(U, T, W, E, t, S, A)
-                k = _jacobi_top_eigenvector(A, Q)
+                horn_matrix(U, T, W, E, t, S, A)
+                k = jacobi_top_eigenvector(A, Q)
                 q0, q1, q2, q3 = Q[0, k], Q[1, k], Q[2, k], Q[3, k]
                 nq = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
                 q0, q1, q2, q3 = q0 / np.sqrt(nq), q1 / np.sqrt(nq), q2 / np.sqrt(nq), q3 / np.sqrt(nq)
-                _quaternion_rotation(q0, q1, q2, q3, R)
+                quaternion_rotation(q0, q1, q2, q3, R)
                 for c in range(4):
                     for a in range(3):
                         corner_rhs[t, c, a] = 0.0
                 en = 0.0
                 for e in range(6):
-                    ci, cj = _E0[e], _E1[e]
+                    ci, cj = EDGE_START[e], EDGE_END[e]
                     i = T[t, ci]
                     j = T[t, cj]
                     w = W[t, e]

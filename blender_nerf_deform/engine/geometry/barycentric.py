@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import EngineError
 
 
-def _as_tets(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def as_tets(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     vertices = np.asarray(vertices, dtype=np.float64)
     tets = np.asarray(tets)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
@@ -39,7 +39,7 @@ def _as_tets(vertices: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def tet_matrices(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """(M, 4, 4) barycentric matrices T: columns are the tet's vertices, last row ones."""
-    vertices, tets = _as_tets(vertices, tets)
+    vertices, tets = as_tets(vertices, tets)
     T = np.ones((len(tets), 4, 4))
     T[:, :3, :] = vertices[tets].transpose(0, 2, 1)
     return T
@@ -51,7 +51,7 @@ def tet_inverses(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     With D = [b-a, c-a, d-a], λ_bcd = D⁻¹ (p - a) and λ_a = 1 - Σλ_bcd, so
     T⁻¹ = [[-1ᵀ D⁻¹, 1 + 1ᵀ D⁻¹ a], [D⁻¹, -D⁻¹ a]]. Degenerate tets get NaN rows.
     """
-    vertices, tets = _as_tets(vertices, tets)
+    vertices, tets = as_tets(vertices, tets)
     P = vertices[tets]  # (M, 4, 3)
     a = P[:, 0]
     D = (P[:, 1:] - a[:, None, :]).transpose(0, 2, 1)  # (M, 3, 3) columns b-a, c-a, d-a
@@ -69,7 +69,7 @@ def tet_inverses(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """(M,) signed volume of each tet: det[b-a, c-a, d-a] / 6 (positive = consistently oriented)."""
-    vertices, tets = _as_tets(vertices, tets)
+    vertices, tets = as_tets(vertices, tets)
     P = vertices[tets]
     e = P[:, 1:] - P[:, :1]
     return np.einsum("mi,mi->m", e[:, 0], np.cross(e[:, 1], e[:, 2])) / 6.0
@@ -77,7 +77,7 @@ def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 def deformed_to_rest_affines(rest_vertices: np.ndarray, deformed_vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """(M, 4, 4) affine of each tet mapping deformed space to rest space: T_rest · T_deformed⁻¹."""
-    rest_vertices, tets = _as_tets(rest_vertices, tets)
+    rest_vertices, tets = as_tets(rest_vertices, tets)
     deformed_vertices = np.asarray(deformed_vertices, dtype=np.float64)
     if deformed_vertices.shape != rest_vertices.shape:
         raise EngineError(
@@ -107,7 +107,10 @@ class InversionReport:
         return self.n_inverted == 0 and self.n_degenerate == 0
 
     def summary(self) -> str:
-        return f"{self.n_inverted} inverted and {self.n_degenerate} degenerate of {len(self.det)} tets (min det F {self.det.min():.3g})"
+        return (
+            f"{self.n_inverted} inverted and {self.n_degenerate} degenerate of {len(self.det)} tets "
+            f"(min det F {self.det.min():.3g})"
+        )
 
 
 def inversion_report(
@@ -118,7 +121,7 @@ def inversion_report(
     Inverted tets (det F < -tol) break the barycentric map (a deformed point can
     lie in two deformed tets); degenerate ones (|det F| <= tol) have no inverse.
     """
-    rest_vertices, tets = _as_tets(rest_vertices, tets)
+    rest_vertices, tets = as_tets(rest_vertices, tets)
     return inversion_from_det(signed_volumes(deformed_vertices, tets) / signed_volumes(rest_vertices, tets), tol)
 
 

@@ -37,10 +37,10 @@ import numpy as np
 from .. import backend as code_path
 from ..errors import EngineError
 from . import arap_kernels
-from .arap_kernels import _E0, _E1
+from .arap_kernels import EDGE_END, EDGE_START
 
 
-def _matrix(A) -> np.ndarray:
+def affine_matrix(A) -> np.ndarray:
     A = np.asarray(A, dtype=np.float64)
     if A.shape == (3, 4):
         A = np.vstack([A, [0, 0, 0, 1]])
@@ -52,7 +52,7 @@ def _matrix(A) -> np.ndarray:
 
 
 def apply_affine(points: np.ndarray, A) -> np.ndarray:
-    A = _matrix(A)
+    A = affine_matrix(A)
     return np.asarray(points, dtype=np.float64) @ A[:3, :3].T + A[:3, 3]
 
 
@@ -178,12 +178,11 @@ def linear_blend(rest_vertices: np.ndarray, regions: list, transforms: list, pow
 #
 # Why not igl.arap_solve per frame: each call pays libigl's generic per-solve
 # work (covariance scatter, a 3x3 SVD per tet, the right-hand side through
-# sparse products, mostly on one core): ~130 ms per iteration on a 22k-vertex
-# / 118k-tet cage on 2 cores, over the 100 ms per frame we allow. Here the
-# local step (covariance, best rotation and right-hand side of every tet) is
-# one fused parallel numba kernel (~23 ms there), and the global step reuses a
+# sparse products, mostly on one core), more than a frame allows on a demo-sized
+# cage. Here the local step (covariance, best rotation and right-hand side of
+# every tet) is one fused parallel numba kernel, and the global step reuses a
 # sparse LU (scipy's SuperLU, symmetric ordering) of the constrained cotangent
-# Laplacian, factored once per set of handles (~24 ms for 3 right-hand sides).
+# Laplacian, factored once per set of handles.
 # Same energy and weights as libigl's ARAP_ENERGY_TYPE_ELEMENTS (its
 # `cotmatrix_entries`), so both converge to the same deformation;
 # tools/bench/geometry_arap.py runs them side by side.
@@ -203,8 +202,8 @@ class ElementsEnergy:
         V, T, n = vertices, tets, len(vertices)
         self.tets = T
         self.W = np.ascontiguousarray(igl.cotmatrix_entries(V, T), dtype=np.float64)  # (M, 6)
-        self.E = np.ascontiguousarray(V[T[:, _E0]] - V[T[:, _E1]])  # (M, 6, 3) rest edge vectors
-        i, j, w = T[:, _E0].ravel(), T[:, _E1].ravel(), self.W.ravel()
+        self.E = np.ascontiguousarray(V[T[:, EDGE_START]] - V[T[:, EDGE_END]])  # (M, 6, 3) rest edge vectors
+        i, j, w = T[:, EDGE_START].ravel(), T[:, EDGE_END].ravel(), self.W.ravel()
         self.L = sp.coo_matrix(
             (np.concatenate([-w, -w, w, w]), (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))), shape=(n, n)
         ).tocsr()
@@ -308,7 +307,8 @@ class ArapDeformer:
         loose = np.setdiff1d(np.arange(n_parts), part[self.b])
         if len(loose):
             raise EngineError(
-                f"ARAP: {len(loose)} connected part(s) of the cage ({int(np.isin(part, loose).sum())} vertices) hold no handle or pinned vertex"
+                f"ARAP: {len(loose)} connected part(s) of the cage ({int(np.isin(part, loose).sum())} vertices) "
+                "hold no handle or pinned vertex"
             )
         self._lu = None
         if len(self._free):
@@ -373,7 +373,7 @@ class ArapDeformer:
         """The linear blend of the handles' and pins' affines, piece by piece of the cage (PieceBlend)."""
         if getattr(self, "_blend", None) is None:
             self._blend = PieceBlend(self.rest, tet_components(len(self.rest), self.tets), self.handles + self.pins)
-        return self._blend([_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins))
+        return self._blend([affine_matrix(A) for A in transforms] + [np.eye(4)] * len(self.pins))
 
     def solve(
         self,
@@ -396,7 +396,8 @@ class ArapDeformer:
         U, it, step = self._iterate(bc, U, max_iter, tol)
         if strict and step >= tol:
             raise EngineError(
-                f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, tolerance {tol:.0e})"
+                f"ARAP did not converge in {max_iter} iterations (last step {step:.2e} of the cage's size, "
+                f"tolerance {tol:.0e})"
             )
         res = ArapResult(U, it, step, step < tol, time.perf_counter() - t0)
         self.U = U

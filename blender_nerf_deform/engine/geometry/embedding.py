@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EngineError
-from .barycentric import _as_tets, tet_inverses
+from .barycentric import as_tets, tet_inverses
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ def locate(
     chunk: int = 1 << 18,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(tet index or -1, (N,4) barycentric coords) of each point: uniform grid of tet lists, numpy only."""
-    V, T = _as_tets(vertices, tets)
+    V, T = as_tets(vertices, tets)
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     inv = tet_inverses(V, T)  # (M,4,4)
     if not np.isfinite(inv).all():
@@ -113,7 +113,7 @@ def embed_points(points: np.ndarray, rest_vertices: np.ndarray, tets: np.ndarray
     centroid, with barycentric weights that extrapolate its affine map, and
     counted in `n_outside`.
     """
-    V, T = _as_tets(rest_vertices, tets)
+    V, T = as_tets(rest_vertices, tets)
     P = np.asarray(points, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3:
         raise EngineError(f"points to embed must have shape (N, 3), got {P.shape}")
@@ -138,7 +138,7 @@ def embed_points_by_part(
 ) -> Embedding:
     """Embed each part's points in that part's own cage only (cage.build_part_cages): where two
     objects' cages meet, a point of one is never attached to the other's tets."""
-    V, T = _as_tets(rest_vertices, tets)
+    V, T = as_tets(rest_vertices, tets)
     P = np.asarray(points, dtype=np.float64)
     tet_part = np.asarray(vertex_part)[T[:, 0]]
     tid = np.empty(len(P), dtype=np.int64)

@@ -182,7 +182,7 @@ def sample_lattice(
     check_grid_memory(max(lattice.shape), lattice.shape)
     grid = np.zeros(lattice.shape, dtype=np.float32)
     outside = np.zeros(lattice.shape, dtype=bool) if clip_bounds is not None else None
-    I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")  # noqa: E741 (grid indices i, j)
     slab = max(1, chunk // (nx * ny))
     starts = range(0, nz, slab)
     if progress:
@@ -212,7 +212,8 @@ def sample_lattice(
 def sample_grid(
     density_fn: DensityFn, bounds, resolution: int = DEFAULT_RESOLUTION, chunk: int = 1 << 18, progress: bool = False
 ) -> np.ndarray:
-    """(R, R, R) float32 densities at the grid's corner points, x fastest-varying last (index [i, j, k] = x_i, y_j, z_k)."""
+    """(R, R, R) float32 densities at the grid's corner points, x fastest-varying last (index [i, j, k] =
+    x_i, y_j, z_k)."""
     if resolution < 2 or resolution > MAX_RESOLUTION:
         raise EngineError(f"grid resolution must be between 2 and {MAX_RESOLUTION}, got {resolution}")
     return sample_lattice(density_fn, box_lattice(bounds, resolution), chunk, progress)[0]
@@ -293,7 +294,7 @@ def component_volumes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
 def _off_the_level(grid: np.ndarray, level: float) -> np.ndarray:
     """The grid (float32, as marching cubes reads it) with samples closer to `level` than a
     relative 1e-5 moved to level +- that much, on their own side: where a sample equals the
-    level, scikit-image's cubes disagree on the faces they share and leave holes (issue 8116).
+    level, scikit-image's cubes disagree on the faces they share and leave holes (scikit-image issue 8116).
     The surface moves by at most that tolerance over the local density slope."""
     grid = np.asarray(grid, dtype=np.float32)
     eps = np.float32(1e-5 * max(abs(level), 1.0))
@@ -410,7 +411,8 @@ def extract_mesh(
     keep_comp = avol >= min_volume
     if not keep_comp.any():
         raise EngineError(
-            f"no component left above the volume threshold {min_volume:.4g}: the largest component's volume is {avol.max():.4g}"
+            f"no component left above the volume threshold {min_volume:.4g}: the largest component's volume is "
+            f"{avol.max():.4g}"
         )
 
     def describe(c):

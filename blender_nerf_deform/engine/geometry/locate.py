@@ -18,7 +18,7 @@ it. So, as NeRFshop does, a grid whose cells list the tets overlapping them:
 - numba path (CPU tensors, when `backend.use_kernels` says so; `locate_kernels.py`): the
   same grid method in fused parallel kernels. On CPU the torch path is bound
   by materialised gathers and compactions and only matches igl's speed; the
-  kernels are several times faster (BENCHMARKS.md).
+  kernels are several times faster.
 
 Cell size: about `cells_per_tet` cells per tet over the cage's bounding box,
 the trade-off between candidates per cell (query cost) and pairs per tet
@@ -76,7 +76,7 @@ class TetLocator:
     """Which tet of a cage contains each point: `locate(points) -> tet index or -1`.
 
     Built once per set of vertex positions (rebuild it for every deformed
-    frame: building is cheap, see BENCHMARKS.md). `eps` is the tolerance on
+    frame: building is cheap). `eps` is the tolerance on
     barycentric coordinates, so a point on a shared face is found in one of
     its two tets rather than in neither.
     """
@@ -131,7 +131,8 @@ class TetLocator:
             )
             if self._grid.n_degenerate:
                 raise EngineError(
-                    f"degenerate cage: {self._grid.n_degenerate} tets have zero volume, so points in them cannot be located"
+                    f"degenerate cage: {self._grid.n_degenerate} tets have zero volume, so points in them cannot "
+                    "be located"
                 )
             self.res = torch.as_tensor(self._grid.res)
             self.n_leaves = self._grid.n_cells

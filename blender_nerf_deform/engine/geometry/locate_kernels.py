@@ -1,8 +1,8 @@
 """Fused CPU kernels (numba) for point location in a tet cage: grid build and query.
 
 Why: on CPU the torch formulation of `locate.py` spends its time in
-materialised (pairs, 12) gathers and per-round compactions; on the project's
-2-core machine it runs at about igl's speed, not above it (BENCHMARKS.md).
+materialised (pairs, 12) gathers and per-round compactions; on a laptop CPU it
+runs at about igl's speed, not above it.
 These kernels do the same uniform-grid method (cells list the tets that
 overlap them, pruned by the tets' face planes) with the per-tet and per-point
 work in registers. Build: one parallel pass over the tets (bounding-box cells,

@@ -336,6 +336,7 @@ def load_cage(path, validate: bool = True) -> dict[str, np.ndarray]:
         bad = np.flatnonzero(vol <= 1e-12 * scale)
         if len(bad):
             raise EngineError(
-                f"degenerate cage {path}: {len(bad)} of {len(T)} tets have zero or negative volume (first: tet {bad[0]})"
+                f"degenerate cage {path}: {len(bad)} of {len(T)} tets have zero or negative volume "
+                f"(first: tet {bad[0]})"
             )
     return out

@@ -48,7 +48,7 @@ import numpy as np
 from ..errors import EngineError
 from . import surface_arap_kernels
 from .barycentric import signed_volumes
-from .deform import ElementsEnergy, PieceBlend, _matrix, check_disjoint, tet_components
+from .deform import ElementsEnergy, PieceBlend, affine_matrix, check_disjoint, tet_components
 
 HISTORY = 5  # L-BFGS pairs kept
 GUESS_STEPS = 3  # plain ARAP steps the first guess may take to undo the blend's folds
@@ -216,7 +216,7 @@ class SurfaceArap:
             raise EngineError(f"{len(transforms)} handle transforms for {len(self._handle_rows)} handles")
         b, c = np.zeros_like(self.rest), 0.0
         for (G, g, S, s, w), A in zip(self._pull, transforms):
-            A = _matrix(A)
+            A = affine_matrix(A)
             M, a = A[:3, :3].T - np.eye(3), A[:3, 3]
             b += G @ M + np.outer(g, a)
             c += float(np.trace(M.T @ S @ M) + 2.0 * s @ (M @ a) + w * (a @ a))
@@ -325,7 +325,7 @@ class SurfaceArap:
         fold and leaves every tet above j, where the barrier would only slow the solve down. The first of
         these with every tet above j, else the last with every tet above j / 2, else the last pulled back
         towards the rest cage until every tet keeps J >= j / 2."""
-        U = self._guess([_matrix(A) for A in transforms] + [np.eye(4)])
+        U = self._guess([affine_matrix(A) for A in transforms] + [np.eye(4)])
         clear = None
         for step in range(GUESS_STEPS + 1):
             B, J, _ = self._local(U)
@@ -359,7 +359,7 @@ class SurfaceArap:
         self._columns = {}
         it, moved = 0, np.inf
         history, last = [], None  # L-BFGS pairs (s, y, 1 / s.y); the previous iterate and gradient
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1):  # noqa: B007 (the iterations run: the result reports `it`)
             G = 2.0 * (self.L @ U - B) + 2.0 * (self.Q @ (U - self.rest) - pulls[0])
             act, g, d1, d2 = self._barrier_terms(U, J)
             if len(act):
@@ -399,10 +399,10 @@ class SurfaceArap:
                 break
         residual = 0.0
         for rows, C_h, size, A in zip(self._handle_rows, self._handle_C, self._region_size, transforms):
-            A = _matrix(A)
+            A = affine_matrix(A)
             target = self._rest_points[rows] @ A[:3, :3].T + A[:3, 3]
             residual = max(residual, float(np.linalg.norm(C_h @ U - target, axis=1).max()) / size)
-        reflected = [name for name, A in zip(self.names, transforms) if np.linalg.det(_matrix(A)[:3, :3]) < 0]
+        reflected = [name for name, A in zip(self.names, transforms) if np.linalg.det(affine_matrix(A)[:3, :3]) < 0]
         return SurfacePose(
             U, it, moved < tol, time.perf_counter() - t0, float(J.min()), residual, int((J < self.j).sum()), reflected
         )

@@ -14,11 +14,11 @@ from __future__ import annotations
 import numpy as np
 
 from .. import backend
-from .arap_kernels import _E0, _E1
+from .arap_kernels import EDGE_END, EDGE_START
 
 if backend.HAVE_NUMBA:
     from ..kernel_cache import njit
-    from .arap_kernels import _horn_matrix, _jacobi_top_eigenvector, _quaternion_rotation
+    from .arap_kernels import horn_matrix, jacobi_top_eigenvector, quaternion_rotation
 
     @njit(inline="always")
     def _cofactor(M, r, c):
@@ -94,7 +94,7 @@ if backend.HAVE_NUMBA:
         its share of the global step's right-hand side added into B at its corners, and J = det F (the
         deformed edges' det x `inv_det0`). Returns the ARAP energy, sum w |u_i - u_j - R (v_i - v_j)|^2.
 
-        One thread: a call is ~1 ms on the demo's cages, where a parallel region's start costs as
+        One thread: a call is short on the demo's cages, where a parallel region's start costs as
         much and stalls whenever another process holds a core (as a render beside Blender does)."""
         A = np.empty((4, 4))
         M = np.empty((4, 4))
@@ -104,17 +104,17 @@ if backend.HAVE_NUMBA:
         B[:] = 0.0
         total = 0.0
         for t in range(T.shape[0]):
-            _horn_matrix(U, T, W, E, t, S, A)
+            horn_matrix(U, T, W, E, t, S, A)
             if not _qcp_top_eigenvector(A, M, q):
-                k = _jacobi_top_eigenvector(A, M)  # overwrites A; the eigenvectors into M's columns
+                k = jacobi_top_eigenvector(A, M)  # overwrites A; the eigenvectors into M's columns
                 for c in range(4):
                     q[c] = M[c, k]
             nq = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
             q0, q1, q2, q3 = q[0] / nq, q[1] / nq, q[2] / nq, q[3] / nq
-            _quaternion_rotation(q0, q1, q2, q3, R)
+            quaternion_rotation(q0, q1, q2, q3, R)
             for e in range(6):
-                i = T[t, _E0[e]]
-                j = T[t, _E1[e]]
+                i = T[t, EDGE_START[e]]
+                j = T[t, EDGE_END[e]]
                 w = W[t, e]
                 for a in range(3):
                     re = R[a, 0] * E[t, e, 0] + R[a, 1] * E[t, e, 1] + R[a, 2] * E[t, e, 2]

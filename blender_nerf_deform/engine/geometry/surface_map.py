@@ -1,10 +1,10 @@
 """The deformed surface as one sparse matrix product: what the worker answers the live preview with.
 
 `Embedding.apply` (pure numpy, the add-on's own path) gathers 4 cage vertices per
-surface vertex; on the demo's 230k-vertex mesh that costs about 17 ms a pose. The
-same map as a CSR matrix (surface vertices x cage vertices, 4 weights a row),
-built once per embedding, applies in about 2.5 ms (2-vCPU Xeon), which is what
-lets a preview update fit in the solve's own 25 ms.
+surface vertex, slow on a dense demo mesh. The same map as a CSR matrix (surface
+vertices x cage vertices, 4 weights a row), built once per embedding, applies
+several times faster, which is what lets a preview update fit in the solve's own
+time.
 """
 
 from __future__ import annotations

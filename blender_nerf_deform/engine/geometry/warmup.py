@@ -1,15 +1,16 @@
 """Compile the geometry stage's CPU kernels ahead of time (`compile` command, Set Up Worker).
 
-As nerf/warmup.py: a tiny cage (a 3x3x3 lattice of vertices, 48 tets) posed by ARAP (with pinned cage
-vertices, and the add-on's surface ARAP with its barrier active), and its points located, runs each
-kernel with the argument types real cages pass.
+As nerf/warmup.py: a tiny cage (a 3x3x3 lattice of vertices, 48 tets) posed by the ARAP that the
+product solves (surface_arap.SurfaceArap, what a handle pose runs, with its barrier active; its elements
+energy runs every kernel of arap_kernels.py) and its points located, runs each kernel with the
+argument types real cages pass. The reference deform.ArapDeformer shares those kernels and argument
+types; it serves the tests and benchmarks and is not run here.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .deform import ArapDeformer
 from .embedding import embed_points
 from .locate import TetLocator
 from .surface_arap import SurfaceArap
@@ -50,13 +51,9 @@ def bent_pose(vertices: np.ndarray, angle: float = 0.3) -> np.ndarray:
 
 def compile_kernels() -> None:
     vertices, tets = lattice_cage((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    top, bottom = np.flatnonzero(vertices[:, 2] > 0.5), np.flatnonzero(vertices[:, 2] < -0.5)
-    arap = ArapDeformer(vertices, tets, handles=[top], pins=[bottom])
     # A strong twist of the top layer, so the surface ARAP's barrier acts too.
     twist = np.eye(4)
     twist[:2, :2] = [[np.cos(2.5), -np.sin(2.5)], [np.sin(2.5), np.cos(2.5)]]
-    arap.solve([twist], max_iter=3)
-    arap.step([np.eye(4)])
     surface = 0.9 * vertices[np.abs(vertices).max(axis=1) > 0.9]  # points on a box inside the cage
     SurfaceArap(
         vertices,

@@ -1,7 +1,7 @@
 """Lazy (sparse) Adam on CPU (numba): updates only the hash-table rows that received a gradient.
 
 Why: a hash table has millions of rows and a training step touches a few
-percent of them; torch's dense Adam would rewrite them all (BENCHMARKS.md).
+percent of them; torch's dense Adam would rewrite them all.
 As instant-ngp does, rows without gradient keep their moments unchanged.
 Used by the trainer when `backend.use_kernels` says so.
 """

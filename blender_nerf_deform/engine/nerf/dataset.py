@@ -72,7 +72,7 @@ fraction says plainly how many frames go.
 from __future__ import annotations
 
 import json
-import sys
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +100,8 @@ from .frames import (
     scaled_camera,
 )
 from .silhouettes import MASK_MEANINGS, hull_box, mask_meaning
+
+log = logging.getLogger(__name__)
 
 __all__ = ["FORMAT_LABELS", "NerfDataset", "load_dataset"]
 
@@ -319,10 +321,12 @@ def _finish(
         images = [downscale_image(img, k) for img in images]
         masks = [downscale_mask(mask, k) for mask in masks]
     if src.missing_rel:
-        print(
-            f"warning: {src.source}: {len(src.missing_rel)} of {src.n_listed} frames have no image file and are "
-            f"skipped (first: {src.missing_rel[0]})",
-            file=sys.stderr,
+        log.warning(
+            "warning: %s: %d of %d frames have no image file and are skipped (first: %s)",
+            src.source,
+            len(src.missing_rel),
+            src.n_listed,
+            src.missing_rel[0],
         )
     cameras = [scaled_camera(c, k) for c in src.cameras]
     aabb = src.aabb if src.aabb is not None else derive_aabb(cameras)
@@ -366,10 +370,12 @@ def _drop_blurry(ds: NerfDataset, sharpness, q: float) -> NerfDataset:
     if n_drop == 0:
         return ds
     order = np.argsort(np.asarray(sharpness, np.float64), kind="stable")
-    print(
-        f"note: {ds.source}: dropped the {n_drop} blurriest of {len(ds)} frames (sharpness below "
-        f"{sharpness[order[n_drop]]:.4g})",
-        file=sys.stderr,
+    log.info(
+        "note: %s: dropped the %d blurriest of %d frames (sharpness below %.4g)",
+        ds.source,
+        n_drop,
+        len(ds),
+        sharpness[order[n_drop]],
     )
     return ds.subset(sorted(order[n_drop:].tolist()))
 

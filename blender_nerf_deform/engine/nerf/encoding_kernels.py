@@ -1,8 +1,7 @@
 """Fused CPU kernels (numba) for the hash encoding: the forward gather and the backward scatter-add.
 
 Why: on CPU the torch formulation of the encoding materialises (N, L, 8, 3)
-int64 index tensors and (N, L, 8, F) gathered features; it is memory-bound and
-runs at ~0.1-0.4 M points/s on the project's 2-core machine (BENCHMARKS.md).
+int64 index tensors and (N, L, 8, F) gathered features; it is memory-bound.
 These kernels compute each point's indices, weights and features in registers
 and write only the (N, L*F) output: forward parallel over points, backward
 parallel over levels (levels own disjoint table rows, so no atomics are needed).
@@ -44,8 +43,7 @@ if backend.HAVE_NUMBA:
         """The table rows (r0..r7) and trilinear weights (w0..w7) of the 8 corners of a point's cell at one
         level, corner c at offset (c & 1, c >> 1 & 1, c >> 2 & 1). Written out corner by corner (not a loop
         over c calling a row function): the shared terms of the 8 rows and weights are computed once,
-        which made the backward kernel about twice as fast and the forward 10-20 % (BENCHMARKS.md,
-        issue 28)."""
+        which makes both kernels faster."""
         fx = _unit(px) * res
         fy = _unit(py) * res
         fz = _unit(pz) * res
@@ -370,8 +368,7 @@ if backend.HAVE_NUMBA:
 
 
 def sh_forward(d: torch.Tensor, degree: int) -> torch.Tensor:
-    """encoding.sh_encode in one pass over the directions (the torch version makes ~30 temporaries):
-    8.6x faster on 300k directions (1.5 vs 13.2 ms), ~3 % of a fox frame."""
+    """encoding.sh_encode in one pass over the directions (the torch version makes ~30 temporaries)."""
     dn = d.detach().contiguous().numpy()
     out = np.empty((dn.shape[0], degree * degree), dtype=dn.dtype)
     _sh_forward(dn, degree, out)

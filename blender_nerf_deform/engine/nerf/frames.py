@@ -342,9 +342,8 @@ def derive_aabb(cameras: list) -> np.ndarray:
     """A capture's box from its cameras alone: centred where their optical axes meet, the mean camera
     distance from the centre to each face, so the cameras stand on (or inside) it, as nerfacto and
     mip-NeRF 360 place their uncontracted region. Smaller boxes (what the images frame) cost held-out
-    quality on both real and synthetic captures: the fox posed by `prepare` 30.2 / 31.0 / 31.2 dB at
-    0.39 / 0.70 / 1.0 of the camera distance, a 360-degree room 22.0 / 25.0 / 26.2 dB at 0.36 / 0.70 /
-    1.0 (BENCHMARKS.md): what lies near the object (the wall behind the fox, the room's floor) is
-    modelled at full resolution, and the render step (the box's diagonal / 256) is not needlessly fine."""
+    quality on both real and synthetic captures: what lies near the object (the wall behind the fox,
+    the room's floor) is modelled at full resolution, and the render step (the box's diagonal / 256) is
+    not needlessly fine."""
     centre, dist = _axes_centre(cameras)
     return np.stack([centre - dist, centre + dist]).astype(np.float32)

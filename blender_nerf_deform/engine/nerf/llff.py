@@ -29,8 +29,8 @@ average. The boxes (axis-aligned in that frame) come from the view frusta:
 
 from __future__ import annotations
 
+import logging
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,8 @@ from ..errors import EngineError
 from ..sfm.orient import apply_to_cameras, orientation
 from .camera import Camera
 from .frames import FrameSource, frame_name, image_size
+
+log = logging.getLogger(__name__)
 
 POSES = "poses_bounds.npy"
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg"}
@@ -79,7 +81,7 @@ def _choose_folder(root: Path, downscale: int) -> tuple[Path, int]:
         return by_factor[downscale], 1
     if downscale == 1:
         finest = folders[0]
-        print(f"note: {root}: no full-resolution images/ folder: reading {finest.name}/", file=sys.stderr)
+        log.info("note: %s: no full-resolution images/ folder: reading %s/", root, finest.name)
         return finest, 1
     finer = [m for m in by_factor if m < downscale and downscale % m == 0]
     if not finer:

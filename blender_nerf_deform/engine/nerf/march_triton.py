@@ -4,9 +4,9 @@ Why hand-written: the torch formulation marches blocks of lattice steps for all 
 small kernels per block and per background step, so a round costs hundreds of launches whatever its size;
 here one program walks a block of rays, one lane per ray, each taking its own steps (lattice steps in the box,
 background steps) until it has k samples, ends, or the round's blocks of steps are spent; the
-program leaves each loop as soon as none of its lanes is in it. Every sample is the one the torch formulation and the numba
-kernels place (the same float32 operations in the same order; on CUDA the compiler may fuse a multiply and
-an add, which moves a sample on a cell boundary by one rounding at most).
+program leaves each loop as soon as none of its lanes is in it. Every sample is the one the torch
+formulation and the numba kernels place (the same float32 operations in the same order; on CUDA the
+compiler may fuse a multiply and an add, which moves a sample on a cell boundary by one rounding at most).
 
 Only imported where `backend.use_triton` says Triton runs (CUDA, or the interpreter), so that `triton.jit`
 sees the interpreter switch when it decorates the kernel.

@@ -4,8 +4,8 @@ A cubic grid of `resolution`^3 cells over an aabb. `density` holds a running
 (EMA) estimate of each cell's density, `mask` says which cells may hold
 matter. The trainer calls `update(density_fn, step)`; the renderer calls
 `occupied(points)` and `bounds()`. Replace `mask` (assign a new tensor) rather
-than editing it in place: `bounds()` and `any()` are cached per mask tensor. Another stage (ray bending) can build a grid
-for a deformed space with `OccupancyGrid.from_mask(aabb, mask)` and hand it to
+than editing it in place: `bounds()` and `any()` are cached per mask tensor. Another stage (ray
+bending) can build a grid for a deformed space with `OccupancyGrid.from_mask(aabb, mask)` and hand it to
 the renderer instead of the model's own.
 """
 

@@ -93,22 +93,21 @@ def ray_box(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor) -> tup
 BG_STEP_FACTOR = 2.0  # background step at the inner box: this many inner steps, growing with distance
 # Samples marched per round of a chunk (k per live ray adapts to it). A ray ends inside its last round,
 # so smaller rounds evaluate fewer samples past the surface but pay more rounds; frames and training
-# weigh that differently (BENCHMARKS.md, issue 13).
+# weigh that differently.
 TRAIN_SAMPLES_PER_ROUND, RENDER_SAMPLES_PER_ROUND = 1 << 16, 1 << 13
 K_MIN, K_MAX = 8, 512
 # Rays retire below this transmittance, and (rendering) samples below this weight skip the colour MLP.
-# 1e-3 would render a fox frame 6-14 % faster at the same PSNR, but consecutive frames of a slow twist
-# then change less evenly (largest / smallest frame step 1.64 vs 1.51): frames keep 1e-4, which an
-# animation needs more than the speed (BENCHMARKS.md, issue 13). Callers may pass their own.
+# A larger value renders faster at the same PSNR, but consecutive frames of a slow twist then change
+# less evenly: frames keep 1e-4, which an animation needs more than the speed. Callers may pass their own.
 TRAIN_EARLY_STOP = RENDER_EARLY_STOP = 1e-4
 
-# Frames (no gradients) on the "fast" path (issue 18): `render_image` renders the frame in tiles of
+# Frames (no gradients) on the "fast" path: `render_image` renders the frame in tiles of
 # TILE x TILE pixels, FRAME_CHUNK rays at a time (tiles keep neighbouring rays together, so the hash
 # rows of a block of samples stay in cache, and large chunks pay the per-round Python overhead once
 # for many rays); a ray's k-th round marches FRAME_ROUND_K[k] samples (the last value repeats), the
 # same whatever else is in its chunk, so a frame does not depend on how it is cut into chunks. A round
 # evaluates at most FRAME_ROUND_BUDGET samples (k shrinks, never below FRAME_ROUND_K[0], for chunks of
-# rays that all live long: memory stays bounded). "legacy": the renderer before issue 18 (4096-ray
+# rays that all live long: memory stays bounded). "legacy": the renderer before tiles (4096-ray
 # chunks in row order, k from RENDER_SAMPLES_PER_ROUND), kept to measure against.
 RENDER_PATHS = ("fast", "legacy")
 _render_path = "fast"
@@ -427,9 +426,8 @@ def _render_chunk(
     return color, alpha, depth, n_density, ray_idx.numel()
 
 
-# The MLPs of a frame run on blocks of this many samples: a block's activations stay in cache. Measured on
-# the lego's MLPs (2 threads): the density MLP 21.8 M samples/s in blocks of 8192 against 7.8 M/s on 2^18
-# samples at once, the colour MLP 8.2 against 3.7 M/s (BENCHMARKS.md, issue 18).
+# The MLPs of a frame run on blocks of this many samples: a block's activations stay in cache, which
+# makes both MLPs several times faster than on a whole round of samples at once.
 FIELD_BLOCK = 8192
 
 
@@ -850,8 +848,8 @@ def tile_order(width: int, height: int, tile: int = TILE) -> torch.Tensor:
     return torch.argsort((tile_of * tile * tile + inside).reshape(-1))
 
 
-# Peak bytes a frame holds per pixel: `render` to PNG measured 80 (outputs, tile order, the PNG's copy;
-# tools/bench/frame_memory.py, 2026-12-05); the worker's answer to Blender adds 20 in shared memory.
+# Peak bytes a frame holds per pixel: `render` to PNG's outputs, tile order and the PNG's copy
+# (tools/bench/frame_memory.py measures them), and the worker's answer to Blender in shared memory.
 FRAME_BYTES_PER_PIXEL = 120
 
 

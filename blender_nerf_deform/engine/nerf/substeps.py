@@ -3,8 +3,8 @@ share (torch-free, so the command line's `--help` and Blender's add-on can read 
 
 The NeRF trains on jittered samples one render step apart (`NerfConfig.render_step`), which averages its
 colour over each step; a frame marched at a fraction of that step is a finer quadrature of the field it
-learnt. Measured on held-out photos (BENCHMARKS.md, issue 28): half the step, +0.16 dB on fern, +0.27 dB
-on the fox, +0.06 dB on lego, for 1.6-2x the frame's time; a third of it adds 0.01-0.03 dB for 1.4x more.
+learnt. On held-out photos half the step is a measurable gain for less than twice the frame's time; a
+third of it adds little for more time.
 Final frames (`render`, `eval`, F12, batch renders, the last image of the viewport) take FINAL_SUBSTEPS;
 the viewport's coarse images and training previews 1.
 """

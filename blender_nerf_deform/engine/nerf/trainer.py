@@ -4,7 +4,7 @@
 yourself. Budget: `options.max_seconds` (training time: the time spent in
 callbacks such as validation is not counted) and/or `options.steps`.
 
-What makes it fast on CPU (BENCHMARKS.md has the figures):
+What makes it fast on CPU:
 - the fused hash-encoding kernels (encoding_kernels.py) and a lazy (sparse) Adam (adam_kernels.py) on
   the hash table that touches only the rows that received a gradient;
 - a constant number of *samples* per step (the ray batch adapts), as nerfacc does;
@@ -25,8 +25,8 @@ contraction.py), or "auto": unbounded for photos without alpha, bounded otherwis
 from __future__ import annotations
 
 import json
+import logging
 import math
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -48,6 +48,8 @@ from .renderer import render_image, render_rays
 from .silhouettes import MASK_LABELS, carve
 from .visibility import model_depth, paid_for, photos_seeing_through
 
+log = logging.getLogger(__name__)
+
 OCC_UPDATE_EVERY_PER_GRID = 16
 VISIBILITY_MARKS = (0.3, 0.6)  # fractions of the budget at which free space is judged by the photos seeing through
 ERROR_TILE = 8  # pixels on a side of an error-map tile
@@ -64,9 +66,8 @@ class TrainOptions:
     init_rays: int = 1024
     max_rays: int = 1 << 14
     # Steps between occupancy updates; None: 16 per grid, so an unbounded model (an inner and a background
-    # grid) updates every 32 steps and spends what a bounded one does: on fern 10 min, 6,250 steps instead
-    # of 5,888 and +0.17 dB validation PSNR against both grids every 16; every 64 is worse, the grid goes
-    # stale (BENCHMARKS.md, issue 28).
+    # grid) updates every 32 steps and spends what a bounded one does: more steps in the same time and a
+    # better validation PSNR than both grids every 16; every 64 is worse, the grid goes stale.
     occ_update_every: int | None = None
     occ_warmup_steps: int = 128  # every cell is re-evaluated during these steps
     occ_fraction: float = 1 / 16  # afterwards: this fraction uniformly + as many among occupied cells
@@ -77,15 +78,14 @@ class TrainOptions:
     seed: int = 0
     distortion_weight: float | None = None  # None: 0.01 for unbounded NeRFs, 0 for bounded ones
     # instant-ngp's error map: this fraction of each step's rays is drawn from tiles of ERROR_TILE^2 pixels in
-    # proportion to their recent loss, the rest uniformly (datasets with masks: all uniformly). Off: on fern
-    # 0.5 was ahead at 1 and 3 min (+0.47, +0.32 dB val) and level at 10 (-0.03 val, +0.01 held-out).
+    # proportion to their recent loss, the rest uniformly (datasets with masks: all uniformly). Off: it
+    # helps early in a training and is level with uniform rays by the end of a full one.
     error_rays: float = 0.0
     # Camera pose refinement (as instant-ngp and nerfacto do): each training photo's pose gets a small
     # rotation about its centre and a translation, learned with the field at pose_lr (in radians, and in
     # half-widths of the scene's inner box, per step at the peak) once pose_start of the budget has passed.
-    # Off: on the fox and fern (10 min, held-out photos) 1e-3 from the start cost 7 and 3 dB (a few rays
-    # per photo per step make the poses wander); 1e-4 from 0.3 was level on the fox and 0.2 dB behind on
-    # fern (BENCHMARKS.md, issue 28).
+    # Off: on held-out photos a large rate from the start costs much (a few rays per photo per step make
+    # the poses wander), and these defaults are at best level with fixed poses.
     refine_poses: bool = False
     pose_lr: float = 1e-4
     pose_start: float = 0.3
@@ -577,10 +577,9 @@ SCENE_MODELS = ("auto", "bounded", "unbounded")
 
 # An unbounded NeRF's cell is occupied when its opacity over one render step (inner diagonal / 256)
 # exceeds 0.1: about instant-ngp's density threshold (0.01 over sqrt(3)/1024 of its unit cube) on the
-# fox. The bounded default 0.01 left 85-99 % of a real capture's cells occupied, so training rays
-# marched 100-200 samples through fog that nothing pruned. Fox, 180 s, photos never tuned on
-# (BENCHMARKS.md, issue 28): 0.01 / 0.04 / 0.1 / 0.25 -> 25.4 / 27.7 / 28.3 / 28.0 dB, 100 / 28 / 16 /
-# 13 training samples per ray, 8.5 / 2.7 / 1.6 / 1.3 s per 270x480 frame.
+# fox. The bounded default 0.01 left most of a real capture's cells occupied, so training rays marched
+# through fog that nothing pruned; on photos never tuned on, 0.1 gave the best PSNR among the values
+# tried, with far fewer samples per ray and faster frames.
 UNBOUNDED_OCC_THRESHOLD = 0.1
 
 
@@ -595,8 +594,7 @@ def config_for(ds: NerfDataset, scene_model: str = "auto") -> NerfConfig:
     inner = np.asarray(ds.inner_aabb if ds.inner_aabb is not None else ds.aabb, dtype=np.float64).reshape(2, 3)
     base = NerfConfig()
     half = float((inner[1] - inner[0]).max() / 2)
-    # Half the bounded model's samples per diagonal: on fox (2 min) the same PSNR as 512 (25.3 dB) with
-    # 13 % fewer samples per ray (BENCHMARKS.md, issue 13).
+    # Half the bounded model's samples per diagonal: the same PSNR as 512 with fewer samples per ray.
     return NerfConfig(
         aabb=[float(v) for v in inner.reshape(-1)],
         contraction="linf",
@@ -662,9 +660,9 @@ def run_training(
         max_seconds = DEFAULT_SECONDS
     ds = load_dataset(data, downscale=downscale, min_sharpness_quantile=drop_blurry, masks=masks)
     if progress:
-        print(f"read {ds.describe()}", file=sys.stderr)
+        log.info("read %s", ds.describe())
         if ds.mask_meaning:
-            print(f"masks: {MASK_LABELS[ds.mask_meaning]}: {ds.mask_reason}", file=sys.stderr)
+            log.info("masks: %s: %s", MASK_LABELS[ds.mask_meaning], ds.mask_reason)
     out = Path(out_dir)
     ckpt = out / "nerf.ckpt"
     _check_replace(ckpt, resume, overwrite)

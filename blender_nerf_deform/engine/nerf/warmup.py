@@ -2,8 +2,8 @@
 
 numba compiles a kernel the first time it runs and keeps the machine code in its cache
 (NUMBA_CACHE_DIR, else `__pycache__` beside the sources). Without this, the first `train` or `render`
-on a machine waits for every kernel it touches: a 270x480 fox frame took 11.3 s from a fresh cache
-against 3.0 s from a warm one (BENCHMARKS.md, issue 28). Training and rendering a few steps of a tiny
+on a machine waits for every kernel it touches, several times the frame's own time. Training and
+rendering a few steps of a tiny
 scene, bounded and unbounded, runs each kernel with the argument types the real work passes, so
 numba's cache answers the real calls.
 """

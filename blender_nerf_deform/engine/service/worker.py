@@ -3,8 +3,9 @@
     python -m blender_nerf_deform.engine.service.worker
 
 Reads requests from stdin and answers on stdout in the format of
-`protocol.py`; everything the engine prints (tqdm, warnings) goes to stderr,
-which the add-on forwards to Blender's console. One request runs at a time;
+`protocol.py`; everything else the engine writes (its log records, one plain
+line each: logs.py; tqdm; warnings) goes to stderr, which the add-on forwards
+to Blender's console and quotes when the worker ends unexpectedly. One request runs at a time;
 a cancel for the running request stops it at its next progress report. A side
 request (an op registered as a side op, such as `training_preview`) is handed
 to the running job instead when that job serves side requests and accepts it
@@ -33,6 +34,7 @@ Why a process and not a thread in Blender: docs/ARCHITECTURE.md ("Why heavy work
 
 from __future__ import annotations
 
+import logging
 import os
 import platform
 import queue
@@ -42,8 +44,11 @@ import traceback
 from typing import TYPE_CHECKING, BinaryIO
 
 from ..errors import EngineError, unexpected_error
+from ..logs import log_to_stderr
 from .protocol import ProtocolError, read_message, write_message
 from .registry import HANDLERS, SIDE_OPS, Cancelled, Handler, Job, Missing
+
+log = logging.getLogger(f"{__package__}.worker")  # also when run as __main__
 
 if TYPE_CHECKING:
     import numpy as np
@@ -82,7 +87,7 @@ class Worker:
                 elif kind == "shutdown":
                     break
         except ProtocolError as exc:
-            print(f"worker: {exc}; stopping", file=sys.stderr)
+            log.error("worker: %s; stopping", exc)
         finally:
             # Blender went away or asked us to stop: cancel what runs, then end.
             for job in list(self._pending.values()):
@@ -170,6 +175,7 @@ def _protocol_streams() -> tuple[BinaryIO, BinaryIO]:
 
 def main() -> int:
     inp, out = _protocol_streams()
+    log_to_stderr()  # the engine's log lines: what the add-on forwards to Blender's console
     try:
         import numpy  # noqa: F401
 
