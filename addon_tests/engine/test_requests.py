@@ -166,6 +166,13 @@ def test_hostile_render_requests_name_the_field():
         R.from_wire([], {})
 
 
+def test_a_camera_reads_on_its_own():
+    assert rq.WireCamera.from_wire(CAMERA.to_wire()) == CAMERA
+    assert rq.WireCamera.from_wire(CAMERA.to_wire()).camera().c2w.tolist() == C2W.tolist()
+    with pytest.raises(EngineError, match=r"^camera: camera.fy: expected a finite non-zero number, got 0"):
+        rq.WireCamera.from_wire({**CAMERA.to_wire(), "fy": 0})
+
+
 def test_a_cage_pose_must_have_the_rest_cage_shape():
     CAGE_POSE.check_cage(np.zeros((4, 3)))
     with pytest.raises(EngineError, match=r"render request: pose.deformed_vertices: 4 vertices for a cage of 5"):

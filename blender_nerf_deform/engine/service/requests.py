@@ -313,7 +313,9 @@ class WireCamera(_Wire):
         )
 
     @classmethod
-    def from_wire(cls, value: Any, reader: _Reader, name: str = "camera") -> WireCamera:
+    def from_wire(cls, value: Any, reader: _Reader | None = None, name: str = "camera") -> WireCamera:
+        """The camera of a request's `camera` param (`reader`: the request's, which names it in errors)."""
+        reader = reader if reader is not None else _Reader("camera", {})
         if not isinstance(value, dict):
             raise reader.expected(name, "a camera (a JSON object)", value)
         sub = _Reader(reader.where, value)
