@@ -10,7 +10,7 @@ its own layer or lower ones only (tools/check_layering.py). This file registers 
 import atexit
 
 from .capture import operators as capture_operators
-from .data import properties
+from .data import properties, versioning
 from .data.guards import guard_classes
 from .deform import handles, live_preview
 from .edit import cage, extract, load_nerf, pick, regions
@@ -25,6 +25,7 @@ from .worker import setup as worker_setup
 # Bottom up; the panels last, the main one before its sub-panels (Blender lists them in this order).
 _modules = (
     properties,
+    versioning,
     worker_setup,
     capture_operators,
     train_operators,

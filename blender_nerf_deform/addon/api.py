@@ -25,7 +25,7 @@ import bpy
 import numpy as np
 from mathutils import Euler, Vector
 
-from .data.properties import owning_nerf
+from .data.properties import Role, owning_nerf
 from .export.bake_volume import volume_of
 
 
@@ -153,7 +153,7 @@ def _showing(ckpt: str, what: str) -> bpy.types.Object:
 
     for obj in bpy.data.objects:
         if (
-            obj.nerf_deform.role == "NERF"
+            obj.nerf_deform.role == Role.NERF
             and obj.nerf_deform.checkpoint
             and same_file(bpy.path.abspath(obj.nerf_deform.checkpoint), ckpt)
         ):

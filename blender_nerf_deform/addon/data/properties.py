@@ -21,6 +21,8 @@ every change of collections, on load, undo, redo and save) clears the pointers
 to it, so it is not saved either.
 """
 
+from enum import StrEnum
+
 import bpy
 import numpy as np
 from bpy.app.handlers import persistent
@@ -48,14 +50,30 @@ PREVIEW_KEY = "NeRF Deform"
 # and saved .blend files name it in scene.render.engine.
 RENDER_ENGINE_ID = "NERF_DEFORM"
 
-ROLES = (
-    ("NONE", "None", "Not part of a NeRF"),
-    ("NERF", "NeRF", "A NeRF placed in the scene (an Empty drawn as its bounding box)"),
-    ("SURFACE", "Surface", "Mesh extracted from the NeRF; the proxy for selections and the live preview"),
-    ("CAGE", "Cage", "Tetrahedral cage of the NeRF, built once; modifiers on it can drive the deformation"),
-    ("HANDLE", "Handle", "An Empty that moves a region of the surface"),
-    ("REGION", "Edit Region", "A box Empty that limits extraction and the cage to the object being edited"),
-)
+
+class Role(StrEnum):
+    """What an object is to the add-on: `Object.nerf_deform.role`, which reads as the role's string (a
+    role compares equal to it). A .blend file stores a role as its position in this order (ROLES, the
+    EnumProperty's items), and scripts use the strings: add roles at the end, never reorder, rename or
+    remove one."""
+
+    NONE = "NONE"
+    NERF = "NERF"
+    SURFACE = "SURFACE"
+    CAGE = "CAGE"
+    HANDLE = "HANDLE"
+    REGION = "REGION"
+
+
+_ROLE_LABELS = {
+    Role.NONE: ("None", "Not part of a NeRF"),
+    Role.NERF: ("NeRF", "A NeRF placed in the scene (an Empty drawn as its bounding box)"),
+    Role.SURFACE: ("Surface", "Mesh extracted from the NeRF; the proxy for selections and the live preview"),
+    Role.CAGE: ("Cage", "Tetrahedral cage of the NeRF, built once; modifiers on it can drive the deformation"),
+    Role.HANDLE: ("Handle", "An Empty that moves a region of the surface"),
+    Role.REGION: ("Edit Region", "A box Empty that limits extraction and the cage to the object being edited"),
+}
+ROLES = tuple((role.value, *_ROLE_LABELS[role]) for role in Role)  # the EnumProperty's items
 
 DEFORMATION_MODES = (
     (
@@ -102,7 +120,7 @@ IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0
 
 
 class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
-    role: EnumProperty(name="Role", items=ROLES, default="NONE")
+    role: EnumProperty(name="Role", items=ROLES, default=Role.NONE.value)
 
     # On the NeRF object.
     checkpoint: StringProperty(
@@ -144,7 +162,8 @@ class NERFDEFORM_ObjectSettings(bpy.types.PropertyGroup):
     edit_region: PointerProperty(
         name="Edit Region",
         type=bpy.types.Object,
-        description="The edit region added last (a NeRF's regions are all the REGION Empties of it; none: the whole box)",
+        description="The edit region added last (a NeRF's regions are all the REGION Empties of it; "
+        "none: the whole box)",
     )
     pick_object: BoolProperty(
         name="Pick at 3D Cursor",
@@ -260,13 +279,13 @@ def owning_nerf(obj: bpy.types.Object | None) -> bpy.types.Object | None:
     if obj is None or is_deleted(obj):
         return None
     s = obj.nerf_deform
-    if s.role == "NERF":
+    if s.role == Role.NERF:
         return obj
-    if s.role in ("HANDLE", "REGION"):
+    if s.role in (Role.HANDLE, Role.REGION):
         return alive(s.nerf)
-    if s.role in ("SURFACE", "CAGE"):
+    if s.role in (Role.SURFACE, Role.CAGE):
         parent = obj.parent
-        return alive(parent) if parent is not None and parent.nerf_deform.role == "NERF" else None
+        return alive(parent) if parent is not None and parent.nerf_deform.role == Role.NERF else None
     return None
 
 
@@ -301,7 +320,7 @@ def handles_of(nerf: bpy.types.Object, *, with_regions: bool = True) -> list[bpy
         (
             o
             for o in bpy.data.objects
-            if o.nerf_deform.role == "HANDLE" and o.nerf_deform.nerf == nerf and not is_deleted(o)
+            if o.nerf_deform.role == Role.HANDLE and o.nerf_deform.nerf == nerf and not is_deleted(o)
         ),
         key=lambda o: o.name,
     )
@@ -313,9 +332,9 @@ def forget_deleted() -> int:
     cleared = 0
     for obj in bpy.data.objects:
         s = obj.nerf_deform
-        if obj.library is not None or s.role not in ("NERF", "HANDLE", "REGION"):
+        if obj.library is not None or s.role not in (Role.NERF, Role.HANDLE, Role.REGION):
             continue
-        for name in ("surface", "cage", "edit_region") if s.role == "NERF" else ("nerf",):
+        for name in ("surface", "cage", "edit_region") if s.role == Role.NERF else ("nerf",):
             if is_deleted(getattr(s, name)):
                 setattr(s, name, None)
                 cleared += 1

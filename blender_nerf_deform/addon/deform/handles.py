@@ -21,6 +21,7 @@ from ..data.properties import (
     PIN_GROUP,
     OnNeRF,
     PlacementError,
+    Role,
     add_app_handlers,
     alive,
     handles_of,
@@ -138,7 +139,7 @@ def handle_target(handle: bpy.types.Object, nerf: bpy.types.Object, depsgraph=No
 
 def _surface_of(context) -> tuple[bpy.types.Object | None, bpy.types.Object | None]:
     obj = context.active_object
-    if obj is None or obj.type != "MESH" or obj.nerf_deform.role != "SURFACE":
+    if obj is None or obj.type != "MESH" or obj.nerf_deform.role != Role.SURFACE:
         return None, None
     nerf = owning_nerf(obj)
     # The NeRF's extracted mesh itself (a duplicate or a leftover has the role but no handles).
@@ -256,7 +257,7 @@ class NERFDEFORM_OT_add_handle(_SelectionOperator, bpy.types.Operator):
         # Rest first, role last: a depsgraph update in between must not see a handle without its rest.
         s.rest_matrix = [x for row in Matrix.Translation(centroid.tolist()) for x in row]
         s.nerf, s.region = nerf, group.name
-        s.role = "HANDLE"
+        s.role = Role.HANDLE
 
         select_only(context, handle)  # ready to grab with its gizmos
         self.report({"INFO"}, f"{handle.name} moves {len(vertices)} vertices")
@@ -302,7 +303,7 @@ class NERFDEFORM_OT_remove_handle(bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        if obj is None or obj.nerf_deform.role != "HANDLE":
+        if obj is None or obj.nerf_deform.role != Role.HANDLE:
             cls.poll_message_set("Make a handle of a NeRF the active object")
             return False
         return True

@@ -30,7 +30,7 @@ import numpy as np
 from ...engine.geometry.embedding import Embedding
 from ..data.cage_store import CageDataError, deformed_cage_in_nerf_frame, has_cage, load_cage, load_embedding
 from ..data.guards import say_once
-from ..data.properties import PREVIEW_KEY, add_app_handlers, remove_app_handlers, settings
+from ..data.properties import PREVIEW_KEY, Role, add_app_handlers, remove_app_handlers, settings
 from ..worker import jobs
 from ..worker.client import WorkerError
 from .poses import AsyncSolver, handle_pose
@@ -130,7 +130,7 @@ def update_all(depsgraph) -> None:
         return
     _updating = True
     try:
-        for nerf in [o for o in depsgraph.scene.objects if o.nerf_deform.role == "NERF"]:
+        for nerf in [o for o in depsgraph.scene.objects if o.nerf_deform.role == Role.NERF]:
             if not _previewable(nerf):
                 continue
             try:

@@ -17,13 +17,12 @@ from ..data.paths import checkpoint_path
 from ..data.properties import (
     PREVIEW_KEY,
     OnNeRF,
-    add_app_handlers,
+    Role,
     alive,
     alive_object,
     forget_deleted,
     keep_out_of_renders,
     owning_nerf,
-    remove_app_handlers,
 )
 from ..worker.jobs import WorkerOperator
 from .regions import edit_regions_of, extracted_regions, same_regions
@@ -139,7 +138,7 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
             for collection in nerf.users_collection:
                 collection.objects.link(cage)
             cage.parent = nerf
-            cage.nerf_deform.role = "CAGE"
+            cage.nerf_deform.role = Role.CAGE
             cage.display_type = "WIRE"
             keep_out_of_renders(cage)
             s.cage = cage
@@ -193,26 +192,4 @@ class NERFDEFORM_OT_build_cage(WorkerOperator, OnNeRF, bpy.types.Operator):
 
 
 _classes = (NERFDEFORM_OT_build_cage,)
-_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
-
-
-@bpy.app.handlers.persistent
-def _cages_into_render_depsgraphs(*_args) -> None:
-    """Cages built before `keep_out_of_renders` were `hide_render`: F12 never saw their modifiers."""
-    for obj in bpy.data.objects:
-        if obj.nerf_deform.role == "CAGE" and obj.hide_render and obj.library is None:
-            keep_out_of_renders(obj)
-
-
-def _handlers():
-    return ((bpy.app.handlers.load_post, _cages_into_render_depsgraphs),)
-
-
-def register():
-    _register_classes()
-    add_app_handlers(_handlers())
-
-
-def unregister():
-    remove_app_handlers(_handlers())
-    _unregister_classes()
+register, unregister = bpy.utils.register_classes_factory(_classes)

@@ -20,7 +20,6 @@ from ..data.cage_store import (
     EMBED_COUNT_KEY,
     EMBED_TET_KEY,
     EMBED_WEIGHTS_KEY,
-    repair_selection_attributes,
     set_triangles,
 )
 from ..data.images import srgb_to_linear
@@ -28,13 +27,12 @@ from ..data.mesh_attributes import set_cut_flags, set_part_labels
 from ..data.paths import checkpoint_path
 from ..data.properties import (
     OnNeRF,
-    add_app_handlers,
+    Role,
     alive,
     alive_object,
     forget_deleted,
     handles_of,
     owning_nerf,
-    remove_app_handlers,
     to_nerf_frame,
 )
 from ..worker.jobs import WorkerOperator
@@ -116,7 +114,7 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, OnNeRF, bpy.types.Operator):
             for collection in nerf.users_collection:
                 collection.objects.link(surface)
             surface.parent = nerf
-            surface.nerf_deform.role = "SURFACE"
+            surface.nerf_deform.role = Role.SURFACE
             surface.hide_render = True  # the NeRF renders itself; the mesh is the artist's proxy
             s.surface = surface
         fill_mesh(surface.data, arrays["vertices"], arrays["faces"], arrays["colors"])
@@ -129,27 +127,5 @@ class NERFDEFORM_OT_extract_mesh(WorkerOperator, OnNeRF, bpy.types.Operator):
         return {"FINISHED"}
 
 
-@bpy.app.handlers.persistent
-def _repair_loaded_meshes(*_args) -> None:
-    """Meshes extracted or caged before `repair_selection_attributes` existed, as files keep them."""
-    for obj in bpy.data.objects:
-        if obj.type == "MESH" and obj.nerf_deform.role in ("SURFACE", "CAGE") and obj.data.library is None:
-            repair_selection_attributes(obj.data)
-
-
 _classes = (NERFDEFORM_OT_extract_mesh,)
-_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_classes)
-
-
-def _handlers():
-    return ((bpy.app.handlers.load_post, _repair_loaded_meshes),)
-
-
-def register():
-    _register_classes()
-    add_app_handlers(_handlers())
-
-
-def unregister():
-    remove_app_handlers(_handlers())
-    _unregister_classes()
+register, unregister = bpy.utils.register_classes_factory(_classes)

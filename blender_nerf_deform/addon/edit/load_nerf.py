@@ -9,7 +9,7 @@ from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ...engine.service.requests import LoadRequest
-from ..data.properties import RENDER_ENGINE_ID, add_app_handlers, remove_app_handlers, select_only
+from ..data.properties import RENDER_ENGINE_ID, Role, add_app_handlers, remove_app_handlers, select_only
 from ..worker.jobs import WorkerOperator
 
 
@@ -64,7 +64,7 @@ def make_checkpoint_paths_relative(*args) -> None:
     make_relative = bpy.context.preferences.filepaths.use_relative_paths
     for obj in bpy.data.objects:
         s = obj.nerf_deform
-        if s.role != "NERF" or not s.checkpoint or obj.library is not None:
+        if s.role != Role.NERF or not s.checkpoint or obj.library is not None:
             continue
         path = rebased_path(s.checkpoint, bpy.data.filepath, new_blend, make_relative)
         if path != s.checkpoint:
@@ -133,7 +133,7 @@ class NERFDEFORM_OT_load_nerf(WorkerOperator, bpy.types.Operator, ImportHelper):
         nerf.empty_display_type = "CUBE"
         nerf.empty_display_size = max(max(abs(v) for v in lo), max(abs(v) for v in hi))
         s = nerf.nerf_deform
-        s.role = "NERF"
+        s.role = Role.NERF
         s.checkpoint = relative_if_possible(self._path)
         s.aabb = [*lo, *hi]
         context.collection.objects.link(nerf)

@@ -32,7 +32,7 @@ import numpy as np
 from mathutils import Matrix, Vector
 
 from ...engine.geometry.region import region_from_dict
-from ..data.properties import OnNeRF, alive, owning_nerf, select_only, to_nerf_frame
+from ..data.properties import OnNeRF, Role, alive, owning_nerf, select_only, to_nerf_frame
 
 REGION_DISPLAY_SIZE = 0.5  # a new region's Scale is its size
 # The regions a surface was extracted with (JSON list of REGION dicts, in the order of its parts;
@@ -93,7 +93,7 @@ def regions_of(nerf: bpy.types.Object) -> list[bpy.types.Object]:
     found = {
         o.name: o
         for o in bpy.data.objects
-        if o.nerf_deform.role == "REGION" and o.nerf_deform.nerf == nerf and alive(o) is not None
+        if o.nerf_deform.role == Role.REGION and o.nerf_deform.nerf == nerf and alive(o) is not None
     }
     if (pointed := alive(nerf.nerf_deform.edit_region)) is not None:
         found[pointed.name] = pointed
@@ -162,7 +162,7 @@ def default_placement(
 
 
 class NERFDEFORM_OT_add_edit_region(OnNeRF, bpy.types.Operator):
-    """Add a box that limits extraction and the cage to an object being edited (around the 3D cursor when it is in the NeRF's box); each region's object gets its own cage"""
+    """Add a box that limits extraction and the cage to an object being edited (around the 3D cursor when it is in the NeRF's box); each region's object gets its own cage"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.add_edit_region"
     bl_label = "Add Edit Region"
@@ -195,10 +195,10 @@ class NERFDEFORM_OT_add_edit_region(OnNeRF, bpy.types.Operator):
         region.location = center.tolist()
         region.scale = (size / (2.0 * REGION_DISPLAY_SIZE)).tolist()
         region.nerf_deform.nerf = nerf
-        region.nerf_deform.role = "REGION"
+        region.nerf_deform.role = Role.REGION
         # The pointer moves to the new region: an Empty that only it named (set by a script) stays a region.
-        if (pointed := alive(s.edit_region)) is not None and pointed.nerf_deform.role == "NONE":
-            pointed.nerf_deform.role, pointed.nerf_deform.nerf = "REGION", nerf
+        if (pointed := alive(s.edit_region)) is not None and pointed.nerf_deform.role == Role.NONE:
+            pointed.nerf_deform.role, pointed.nerf_deform.nerf = Role.REGION, nerf
         s.edit_region = region  # the active one
 
         select_only(context, region)  # ready for its gizmos
@@ -229,7 +229,7 @@ class NERFDEFORM_OT_select_edit_region(bpy.types.Operator):
 
     def execute(self, context):
         region = bpy.data.objects.get(self.name)
-        if region is None or region.nerf_deform.role != "REGION" or not region.users_collection:
+        if region is None or region.nerf_deform.role != Role.REGION or not region.users_collection:
             self.report({"ERROR"}, f"{self.bl_label}: no edit region named '{self.name}'")
             return {"CANCELLED"}
         if context.view_layer.objects.get(region.name) != region:

@@ -32,6 +32,8 @@ from __future__ import annotations
 import bpy
 from bpy.props import EnumProperty
 
+from ..data.properties import Role
+
 TREE_NAME = "NeRF Deform Composite"
 MESH_SCENE_KEY = "nerf_deform_mesh_scene"  # ID property of the NeRF scene: its meshes scene
 TREE_KEY = "nerf_deform_composite"  # ID property marking the node group as ours
@@ -128,7 +130,7 @@ def composite_with_scene(
 
 
 class NERFDEFORM_OT_composite_with_scene(bpy.types.Operator):
-    """Render the scene's meshes with Cycles or EEVEE from the same camera and merge them with the NeRFs by depth in the compositor"""
+    """Render the scene's meshes with Cycles or EEVEE from the same camera and merge them with the NeRFs by depth in the compositor"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.composite_with_scene"
     bl_label = "Composite With Scene"
@@ -145,7 +147,7 @@ class NERFDEFORM_OT_composite_with_scene(bpy.types.Operator):
     def execute(self, context):
         scene = context.scene
         try:
-            if not any(o.nerf_deform.role == "NERF" for o in scene.objects):
+            if not any(o.nerf_deform.role == Role.NERF for o in scene.objects):
                 raise ValueError("no NeRF object in the scene: use Load NeRF first")
             mesh_scene, tree, notes = composite_with_scene(scene, context.view_layer, self.engine)
         except (ValueError, TypeError) as error:

@@ -21,7 +21,7 @@ import bpy
 
 from ...engine.service.requests import WarmRequest
 from ..data.paths import addon_preferences, checkpoint_path
-from ..data.properties import add_app_handlers, remove_app_handlers
+from ..data.properties import Role, add_app_handlers, remove_app_handlers
 from ..worker import jobs
 from ..worker.client import WorkerClient, WorkerError
 
@@ -31,7 +31,7 @@ def file_nerfs() -> list[str]:
     checkpoints = []
     for obj in bpy.context.scene.objects:
         settings = obj.nerf_deform
-        if settings.role != "NERF" or not settings.checkpoint:
+        if settings.role != Role.NERF or not settings.checkpoint:
             continue
         path = checkpoint_path(obj)
         if os.path.isfile(path) and path not in checkpoints:

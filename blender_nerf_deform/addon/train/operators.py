@@ -30,6 +30,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 
 from ...engine.service.requests import MaskMeaning, TrainRequest
 from ..data.paths import default_run_folder, same_file
+from ..data.properties import Role
 from ..worker.jobs import WorkerOperator
 
 # What a dataset's masks mean (the engine's `train --masks`, silhouettes.py), as Blender enum items.
@@ -89,7 +90,7 @@ def show_trained(op, context, result: dict, ckpt: str) -> set[str]:
     existing = [
         o
         for o in bpy.data.objects
-        if o.nerf_deform.role == "NERF"
+        if o.nerf_deform.role == Role.NERF
         and o.users_collection
         and o.nerf_deform.checkpoint
         and same_file(bpy.path.abspath(o.nerf_deform.checkpoint), ckpt)

@@ -33,7 +33,7 @@ from ...engine.service.requests import TrainingPreviewRequest, WireCamera
 from ..data.camera import CameraError, pinhole_from_blender, render_size
 from ..data.images import show_in_image_editors, srgb_to_linear, write_image
 from ..data.paths import default_run_folder, same_file
-from ..data.properties import PlacementError, to_nerf_frame
+from ..data.properties import PlacementError, Role, to_nerf_frame
 from ..worker import jobs
 from ..worker.client import WorkerError, active_client
 
@@ -78,7 +78,7 @@ def world_to_nerf(context, checkpoint: str) -> np.ndarray:
     for nerf in bpy.data.objects:
         s = nerf.nerf_deform
         if (
-            s.role == "NERF"
+            s.role == Role.NERF
             and s.checkpoint
             and nerf.users_collection
             and same_file(bpy.path.abspath(s.checkpoint), checkpoint)

@@ -13,12 +13,13 @@ from __future__ import annotations
 import bpy
 
 from ..data.cage_store import EMBED_COUNT_KEY, EMBED_TET_KEY, has_cage, stored_tet_count
+from ..data.properties import Role
 from ..edit.regions import edit_regions_of, extracted_regions, regions_of, same_regions
 
 
 def scene_nerfs(scene: bpy.types.Scene) -> list[bpy.types.Object]:
     """The scene's NeRF objects (in a collection of this scene), by name."""
-    return sorted((o for o in scene.objects if o.nerf_deform.role == "NERF"), key=lambda o: o.name)
+    return sorted((o for o in scene.objects if o.nerf_deform.role == Role.NERF), key=lambda o: o.name)
 
 
 def _in_render(obj: bpy.types.Object, view_layer: bpy.types.ViewLayer) -> bool:
@@ -85,7 +86,7 @@ class NERFDEFORM_OT_activate_nerf(bpy.types.Operator):
 
     def execute(self, context):
         obj = context.scene.objects.get(self.name)
-        if obj is None or obj.nerf_deform.role != "NERF":
+        if obj is None or obj.nerf_deform.role != Role.NERF:
             self.report({"ERROR"}, f"Activate NeRF: no NeRF object {self.name!r} in this scene")
             return {"CANCELLED"}
         if not obj.visible_get():
