@@ -8,8 +8,10 @@ Steps, in this order:
 2. optionally refined (`cage_refine.refine_cage`, the one refiner): in the box of a selection of
    surface vertices widened by the margin and the edge length (Build Cage's Refine Selected; the
    edge defaults to half the cage's median edge), or in a given box (`cage --refine-box`), or
-   everywhere. Refinement runs once on the cage of all parts: no tet joins two parts, so each
-   part is refined as it would be alone;
+   everywhere. Refinement runs once on the cage of all parts, after they are merged, as the
+   worker's Build Cage always did (the command line used to refine each part before merging):
+   no tet joins two parts and a bisection only spreads across shared edges, so each part's tets
+   are split as they would be alone; only the numbering of the new vertices differs;
 3. the cage vertices pinned where an edit region cut the scene (`cut_pins`, part by part);
 4. optionally the surface embedded in it (what the add-on stores beside the cage).
 """
