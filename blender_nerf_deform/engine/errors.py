@@ -47,7 +47,10 @@ def unexpected_error(where: str, error: BaseException | None = None) -> str:
             f.write(f"{where}\n{text}")
         saved = f"its traceback is in {path}"
     except OSError as exc:
-        saved = f"its traceback could not be saved in {folder} ({exc.strerror or exc}; set NERF_DEFORM_LOG_DIR to a writable folder)"
+        saved = (
+            f"its traceback could not be saved in {folder} "
+            f"({exc.strerror or exc}; set NERF_DEFORM_LOG_DIR to a writable folder)"
+        )
     try:
         summary = f"{type(error).__name__}: {error}" if error is not None else "unknown error"
     except Exception:  # an exception whose own text fails: its type must still be said

@@ -245,7 +245,8 @@ def cage_pins(cage_object: bpy.types.Object) -> np.ndarray:
     pins = _stored_array(mesh, CUT_PINS_KEY, "cage vertices pinned at the cut", integers=True, row=1)
     if len(pins) and (pins.min() < 0 or pins.max() >= len(mesh.vertices)):
         raise CageDataError(
-            f"cage mesh '{mesh.name}' has {len(mesh.vertices)} vertices but its pins at the cut index up to {pins.max()}: "
+            f"cage mesh '{mesh.name}' has {len(mesh.vertices)} vertices but its pins at the cut index up to "
+            f"{pins.max()}: "
             "rebuild the cage (Build Cage)"
         )
     return np.unique(pins)
@@ -267,7 +268,8 @@ def evaluated_cage_vertices(cage_object: bpy.types.Object, depsgraph: bpy.types.
         n = len(mesh.vertices)
         if n != len(cage_object.data.vertices):
             raise CageDataError(
-                f"the modifiers of cage '{cage_object.name}' change its vertex count ({len(cage_object.data.vertices)} → {n}); "
+                f"the modifiers of cage '{cage_object.name}' change its vertex count "
+                f"({len(cage_object.data.vertices)} → {n}); "
                 "use deforming modifiers only (Armature, Lattice, Simple Deform, ...)"
             )
         co = np.empty(3 * n, dtype=np.float32)

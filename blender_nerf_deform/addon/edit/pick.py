@@ -23,7 +23,7 @@ from ..worker.jobs import worker
 
 
 class NERFDEFORM_OT_place_cursor_on_nerf(OnNeRF, bpy.types.Operator):
-    """Click on the NeRF in the viewport: the 3D cursor goes where the ray first meets its surface (the pick point of "Pick at 3D Cursor")"""
+    """Click on the NeRF in the viewport: the 3D cursor goes where the ray first meets its surface (the pick point of "Pick at 3D Cursor")"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "nerf_deform.place_cursor_on_nerf"
     bl_label = "Place 3D Cursor on NeRF"

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
 
 from ..errors import EngineError, run_command
 from ..logs import log_to_stderr
