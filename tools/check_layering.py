@@ -48,9 +48,9 @@ STAGE_LIBRARIES = TORCH_MODULES | {"numba", "llvmlite", "scipy", "skimage", "tri
 PLUMBING = ("cli", "service")
 # The add-on's layers, bottom up: one sub-package of addon/ each (docs/ARCHITECTURE.md, "The add-on
 # in layers"). A module imports only from its own layer or lower ones, also inside functions; api.py
-# (the scripting API) sits on top, addon/__init__.py (registration) above everything.
+# (the scripting API) and versioning.py sit on top, addon/__init__.py (registration) above everything.
 ADDON_LAYERS = ("data", "worker", "capture", "train", "edit", "deform", "render", "export", "ui")
-ADDON_TOP = ("api",)
+ADDON_TOP = ("api", "versioning")  # versioning.py: the repairs of older .blend files
 
 
 def _module_name(package_root: Path, path: Path) -> str:

@@ -1,4 +1,4 @@
-"""Saved .blend files across releases (addon/data/versioning.py): a file saved before the data version
+"""Saved .blend files across releases (addon/versioning.py): a file saved before the data version
 opens upgraded and renders as a file saved by this release does."""
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def _select_edge_types(mesh) -> set[str]:
 def test_a_file_saved_before_the_data_version_opens_upgraded_and_renders_as_one_saved_now(addon, sphere_nerf, tmp_path):
     bpy = addon
     from blender_nerf_deform.addon.data.properties import RAY_VISIBILITY
-    from blender_nerf_deform.addon.data.versioning import DATA_VERSION, VERSION_PROPERTY, file_data_version
+    from blender_nerf_deform.addon.versioning import DATA_VERSION, VERSION_PROPERTY, file_data_version
 
     ckpt, _ = sphere_nerf
     old = tmp_path / "old.blend"
@@ -76,7 +76,7 @@ def test_repairs_run_on_files_older_than_them_only(addon, tmp_path):
     renders stays hidden (the repair is an upgrade of old files, not a rule of every load)."""
     bpy = addon
     import blender_nerf_deform
-    from blender_nerf_deform.addon.data.versioning import DATA_VERSION, do_versions, file_data_version
+    from blender_nerf_deform.addon.versioning import DATA_VERSION, do_versions, file_data_version
 
     def scene_with_hidden_cage():
         bpy.ops.wm.read_factory_settings(use_empty=True)

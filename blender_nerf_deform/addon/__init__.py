@@ -9,8 +9,9 @@ its own layer or lower ones only (tools/check_layering.py). This file registers 
 
 import atexit
 
+from . import versioning
 from .capture import operators as capture_operators
-from .data import properties, versioning
+from .data import properties
 from .data.guards import guard_classes
 from .deform import handles, live_preview
 from .edit import cage, extract, load_nerf, pick, regions

@@ -12,7 +12,9 @@ A new repair: raise DATA_VERSION, write the function (it must be safe on any fil
 version) and add it to `REPAIRS` under the new version. Fixtures: addon_tests/fixtures/unversioned.blend
 is a file of version 0 (addon_tests/addon/test_versioning.py opens and renders it).
 
-What runs on every load stays with its module, since it is no upgrade of old data:
+It sits beside api.py, above the layers (tools/check_layering.py: ADDON_TOP), and reads and repairs
+the data layer's stored data only. What runs on every load stays with its module, since it is no
+upgrade of old data:
 data/properties.py's `forget_deleted` (pointers to objects the artist deleted, in a file of any
 version), deform/handles.py's region cache (this session's memory, not the file's data),
 render/prewarm.py's start of the worker, and edit/regions.py's reading of a region that only the
@@ -27,8 +29,8 @@ import bpy
 from bpy.app.handlers import persistent
 from bpy.props import IntProperty
 
-from .cage_store import repair_selection_attributes
-from .properties import Role, add_app_handlers, keep_out_of_renders, remove_app_handlers
+from .data.cage_store import repair_selection_attributes
+from .data.properties import Role, add_app_handlers, keep_out_of_renders, remove_app_handlers
 
 DATA_VERSION = 1
 VERSION_PROPERTY = "nerf_deform_data_version"
