@@ -26,7 +26,7 @@ from .worker import setup as worker_setup
 # Bottom up; the panels last, the main one before its sub-panels (Blender lists them in this order).
 _modules = (
     properties,
-    versioning,
+    versioning,  # early, above its layer: its load_post repairs run before the other modules' (prewarm)
     worker_setup,
     capture_operators,
     train_operators,
