@@ -58,9 +58,9 @@ def poses_from_blend(demo: Path) -> dict:
     for frame in range(scene.frame_start, scene.frame_end + 1):
         scene.frame_set(frame)
         pose, shared = deformation.handle_pose(nerfs[0], bpy.context.evaluated_depsgraph_get())
-        transforms.append(np.asarray(pose["transforms"], dtype=np.float64))
+        transforms.append(np.asarray(pose.transforms, dtype=np.float64))
         if not out:
-            out = {"mode": np.array(pose["mode"])}
+            out = {"mode": np.array(str(pose.mode))}
             for name in ("cage", "embedding", "regions"):
                 for k, v in shared[name][1]().items():
                     out[f"{name}.{k}"] = np.asarray(v)

@@ -94,7 +94,7 @@ def demo_scene(demo: Path, width: int, height: int):
     from blender_nerf_deform.engine.geometry.deform import split_regions
     from blender_nerf_deform.engine.geometry.embedding import Embedding
     from blender_nerf_deform.engine.geometry.handle_pose import RegionDeformer
-    from blender_nerf_deform.engine.service.ops import _camera
+    from blender_nerf_deform.engine.service.requests import WireCamera
 
     blend = demo / "demo.blend"
     cache = demo / f"bench_frame_{width}x{height}.npz"
@@ -110,7 +110,7 @@ def demo_scene(demo: Path, width: int, height: int):
     data = np.load(cache)
     meta = json.loads(str(data["meta"]))
     params = meta["bent_params"]
-    camera = _camera(params["camera"])
+    camera = WireCamera.from_wire(params["camera"]).camera()
     pose = params["pose"]
     rest, tets = data["cage/vertices"], data["cage/tets"]
     tet_ids = data["embedding/tet_ids"]

@@ -7,6 +7,8 @@ rendered, and the worker's solve depends on nothing else.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from ...engine.service.protocol import content_key
@@ -22,6 +24,8 @@ from ..data.cage_store import (
 )
 from ..data.properties import PIN_GROUP, PlacementError, handles_of
 from .handles import handle_target, region_vertices
+
+logger = logging.getLogger(__name__)
 
 
 def handle_pose(nerf, depsgraph, to_nerf=None) -> tuple[HandlesPose, dict] | None:
@@ -151,5 +155,5 @@ class AsyncSolver:
     def _failed(self, error) -> None:
         if error.kind != "cancelled" and str(error) != self.last_error:
             self.last_error = str(error)
-            print(f"NeRF Deform preview: {error}")
+            logger.warning("NeRF Deform preview: %s", error)
         self._next()

@@ -33,7 +33,7 @@ from ..data.camera import CameraError, Pinhole, pinhole_from_blender
 from ..data.depth_compositing import HIT_ALPHA, NO_HIT_DEPTH, composite_by_depth
 from ..data.images import srgb_to_linear
 from ..data.paths import checkpoint_path
-from ..data.properties import to_nerf_frame
+from ..data.properties import Role, to_nerf_frame
 from ..deform.poses import frame_pose
 from ..worker import jobs
 from ..worker.client import WorkerError
@@ -42,7 +42,7 @@ from ..worker.client import WorkerError
 def nerfs_to_render(depsgraph) -> list[bpy.types.Object]:
     """The NeRF objects the depsgraph shows (originals, by name). A render's depsgraph leaves out
     `hide_render` objects and excluded or render-disabled collections; the viewport's, the hidden ones."""
-    nerfs = {o.original.name: o.original for o in depsgraph.objects if o.original.nerf_deform.role == "NERF"}
+    nerfs = {o.original.name: o.original for o in depsgraph.objects if o.original.nerf_deform.role == Role.NERF}
     return [nerfs[name] for name in sorted(nerfs)]
 
 

@@ -23,8 +23,8 @@ cell), used by the tests and the benchmarks.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -33,6 +33,8 @@ import numpy as np
 
 from ..errors import EngineError
 from .barycentric import boundary_faces, signed_volumes  # noqa: F401  (boundary_faces is part of this module's API)
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_MARGIN_FRACTION = 0.03  # of the mesh's bounding-box diagonal, when no margin is given
 
@@ -254,7 +256,7 @@ def build_cage(
         except EngineError as error:
             if attempt == runs - 1:
                 raise EngineError(f"{error} (after {runs} fTetWild run(s))") from None
-            print(f"cage: fTetWild result rejected ({error}); rebuilding", file=sys.stderr)
+            logger.warning("cage: fTetWild result rejected (%s); rebuilding", error)
     timings["attempts"] = attempt + 1
     return Cage(vertices=CV, tets=CT, margin=float(margin), clearance=float(clearance), timings=timings)
 
