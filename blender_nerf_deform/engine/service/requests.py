@@ -8,6 +8,9 @@ Every request is checked once, where it is built from the wire: anything wrong i
 
     render request: pose.deformed_vertices: expected a float array of shape (N, 3), got int64 (4, 2)
 
+The readers below are written here rather than taken from pydantic or cattrs: Blender's Python
+carries numpy and nothing else, and an extension must not install packages into it.
+
 `from_wire(to_wire(x)) == x` for every request, and `to_wire` gives the params and arrays the
 wire has always carried (protocol.py frames them: a JSON header, then raw arrays).
 
