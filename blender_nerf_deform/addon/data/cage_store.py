@@ -366,7 +366,7 @@ def _stored_key(idblock, name: str, load) -> str:
 
 def _fingerprint(value) -> tuple:
     """What tells one stored value from another cheaply: its type, length and, for an array, the sum of its
-    words (read in place, about 0.2 ms a megabyte: no copy, no hash), which any change of a value alters."""
+    words (read in place: no copy, no hash), which any change of a value alters."""
     typecode = getattr(value, "typecode", None)
     if typecode is None:
         return (type(value).__name__, value if isinstance(value, (str, int, float)) else None)

@@ -2,8 +2,8 @@
 that the artist's first F12 or Rendered viewport waits for neither.
 
 A file's first frame otherwise pays the worker's start (Python, torch and numba imported), the
-checkpoints' load and numba's first run of the frame's kernels before it renders anything
-(BENCHMARKS.md, issue 28). The worker's `warm` op does the last two; the start runs on a thread, so
+checkpoints' load and numba's first run of the frame's kernels before it renders anything. The
+worker's `warm` op does the last two; the start runs on a thread, so
 Blender's main thread never waits for it, and a render asked for meanwhile waits for that same worker
 rather than starting a second one.
 
