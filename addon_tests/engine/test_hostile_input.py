@@ -1198,6 +1198,9 @@ def test_a_bake_killed_by_sigterm_or_sighup_leaves_nothing(base, tmp_path, signu
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        # Started from a terminal: a suite run under nohup would hand SIGHUP down ignored, and the
+        # engine keeps a disposition it inherits (SIG_IGN included), as nohup asks.
+        preexec_fn=lambda: signal.signal(signum, signal.SIG_DFL),
     )
     try:
         deadline = time.time() + START_WAIT_S
