@@ -394,8 +394,9 @@ def _render(bpy, path: str):
 
 
 def child_author(config: dict) -> None:
-    import bmesh  # (after bpy, which makes it importable)
     import bpy
+
+    import bmesh  # (after bpy, which makes it importable)
     import numpy as np
     from mathutils import Vector
 

@@ -22,6 +22,7 @@ transforms.json's world), as the engine's command line takes them.
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 from mathutils import Euler, Vector
 

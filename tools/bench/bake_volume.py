@@ -135,6 +135,7 @@ HEAD_SIZE = (1.8, 1.8, 1.9)  # the head's box in the wall's frame, around HEAD_P
 
 def fox_rows(args, work: Path) -> list[dict]:
     import bpy
+
     import torch
     from mathutils import Matrix
 

@@ -320,6 +320,7 @@ def render_ground_truth(work: Path, args, maps=None, rest_pose: bool = True) -> 
     """Rest-pose dataset (train + test) and, per map of `maps` (default all), the deformed meshes seen
     from the same test cameras. rest_pose False: only the maps (the rest pose's dataset is kept)."""
     import bpy  # noqa: PLC0415
+
     from make_dataset import make_dataset  # noqa: PLC0415
 
     objects = build_scene(bpy)

@@ -48,6 +48,7 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
 
     import bpy  # noqa: PLC0415
+
     from PIL import Image  # noqa: PLC0415
 
     import blender_nerf_deform  # noqa: PLC0415

@@ -183,6 +183,7 @@ def _dilate(mask, px):
 def blender_part(args, work: Path, region: dict) -> dict:
     os.environ.setdefault("NERF_DEFORM_PYTHON", sys.executable)
     import bpy
+
     from mathutils import Euler, Matrix, Vector
 
     import blender_nerf_deform

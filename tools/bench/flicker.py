@@ -87,6 +87,7 @@ def _fcurves(action):
 def child(config: dict) -> int:
     """In a fresh Blender (the extension enabled from demo_out's user folder): render one animation."""
     import bpy
+
     from mathutils import Matrix, Vector
 
     bpy.ops.wm.read_userpref()

@@ -40,6 +40,7 @@ key computed once per Blender session.
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 from ...engine.errors import EngineError

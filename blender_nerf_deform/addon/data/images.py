@@ -8,6 +8,7 @@ images shown in the open Image Editors.
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 

@@ -7,6 +7,7 @@ Extract Mesh writes them, Build Cage and the handles read them (data layer: docs
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 CUT_ATTRIBUTE = "NeRF Cut"

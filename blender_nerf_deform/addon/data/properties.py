@@ -24,7 +24,6 @@ to it, so it is not saved either.
 from enum import StrEnum
 
 import bpy
-import numpy as np
 from bpy.app.handlers import persistent
 from bpy.props import (
     BoolProperty,
@@ -35,6 +34,8 @@ from bpy.props import (
     PointerProperty,
     StringProperty,
 )
+
+import numpy as np
 
 from ...engine.nerf.substeps import FINAL_SUBSTEPS, MAX_SUBSTEPS
 from .guards import guarded

@@ -9,10 +9,11 @@ matrix in the NeRF's frame times the inverse of its rest matrix.
 
 from __future__ import annotations
 
-import bmesh  # noqa: I001
 import bpy  # first: bmesh is importable only once bpy is loaded (the bpy module from PyPI)
-import numpy as np
 from bpy.app.handlers import persistent
+
+import bmesh
+import numpy as np
 from mathutils import Matrix
 
 from ..data.cage_store import separate_regions

@@ -25,6 +25,7 @@ previews, computed on the spot, keep following the frames.
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 from ...engine.geometry.embedding import Embedding

@@ -8,6 +8,7 @@ get the "NeRF Part" attribute too (which region's object each cage vertex wraps)
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 from ...engine.service.requests import CageRequest

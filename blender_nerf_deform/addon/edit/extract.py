@@ -12,6 +12,7 @@ Build Cage builds one cage per part. The regions used are recorded on the mesh.
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 from ...engine.service.requests import ExtractRequest

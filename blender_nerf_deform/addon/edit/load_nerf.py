@@ -6,6 +6,7 @@ import os
 
 import bpy
 from bpy.props import StringProperty
+
 from bpy_extras.io_utils import ImportHelper
 
 from ...engine.service.requests import LoadRequest

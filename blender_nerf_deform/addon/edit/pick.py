@@ -11,8 +11,9 @@ space), blocking, for scripts and tests.
 from __future__ import annotations
 
 import bpy
-import numpy as np
 from bpy.props import FloatVectorProperty
+
+import numpy as np
 from mathutils import Vector
 
 from ...engine.service.requests import FirstSurfaceRequest

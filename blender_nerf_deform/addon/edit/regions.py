@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 
 import bpy
+
 import numpy as np
 from mathutils import Matrix, Vector
 

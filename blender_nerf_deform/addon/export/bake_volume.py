@@ -34,6 +34,7 @@ import re
 from pathlib import Path
 
 import bpy
+
 import numpy as np
 
 from ...engine.bend.baked_volume import MAX_RESOLUTION

@@ -29,6 +29,7 @@ import sys
 from pathlib import Path
 
 import bpy
+
 import numpy as np
 
 from ...engine.bend.baked_volume import check_baked_arrays

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import bpy
+
 import numpy as np
 
 from ...engine.errors import unexpected_error

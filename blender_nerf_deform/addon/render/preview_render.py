@@ -13,6 +13,7 @@ last frame shown.
 from __future__ import annotations
 
 import bpy
+
 import numpy as np
 
 from ..data.camera import CameraError

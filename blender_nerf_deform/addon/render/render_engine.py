@@ -14,6 +14,7 @@ the engine's rows run top-down.
 import weakref
 
 import bpy
+
 import numpy as np
 
 from ..data.camera import CameraError

@@ -26,8 +26,9 @@ import math
 import os
 
 import bpy
-import numpy as np
 from bpy.props import IntProperty, StringProperty
+
+import numpy as np
 
 from ...engine.service.requests import TrainingPreviewRequest, WireCamera
 from ..data.camera import CameraError, pinhole_from_blender, render_size
