@@ -755,11 +755,13 @@ def render_rays(
     frame = not grad and not perturb and _render_path == "fast"
     device_path = _render_path == "fast" and not backend.use_kernels(origins.device)
     for s in range(0, total, chunk):
+        o, d = origins[s : s + chunk], dirs[s : s + chunk]
+        codes = None if appearance is None else appearance[s : s + chunk]
         if device_path:
             c, a, dp, nd, nc = _render_chunk_device(
                 model,
-                origins[s : s + chunk],
-                dirs[s : s + chunk],
+                o,
+                d,
                 occ,
                 step,
                 sample_transform,
@@ -769,27 +771,27 @@ def render_rays(
                 grad,
                 near,
                 samples,
-                None if appearance is None else appearance[s : s + chunk],
+                codes,
                 max_samples,
             )
         elif frame:
             c, a, dp, nd, nc = _render_chunk_frame(
                 model,
-                origins[s : s + chunk],
-                dirs[s : s + chunk],
+                o,
+                d,
                 occ,
                 step,
                 sample_transform,
                 early_stop_eps,
                 weight_threshold,
                 near,
-                None if appearance is None else appearance[s : s + chunk],
+                codes,
             )
         else:
             c, a, dp, nd, nc = _render_chunk(
                 model,
-                origins[s : s + chunk],
-                dirs[s : s + chunk],
+                o,
+                d,
                 occ,
                 step,
                 sample_transform,
@@ -799,7 +801,7 @@ def render_rays(
                 grad,
                 near,
                 samples,
-                None if appearance is None else appearance[s : s + chunk],
+                codes,
                 TRAIN_SAMPLES_PER_ROUND if grad else RENDER_SAMPLES_PER_ROUND,
             )
         if samples is not None and len(samples) > n_chunks_with_samples:
